@@ -1,0 +1,63 @@
+"""Loads a Scenario: file -> named entry -> inline overrides (as Drake's
+hardware_sim does)."""
+
+from pathlib import Path
+
+from pydrake.common.yaml import yaml_dump_typed, yaml_load_typed
+
+from fabric_imitation.learning.errors import InputError
+from fabric_imitation.scenarios.schema import Scenario
+
+DEFAULT_SCENARIOS_FILE = Path(__file__).with_name("scenarios.yaml")
+
+
+def ScenarioNames(filename: Path | str = DEFAULT_SCENARIOS_FILE) -> list[str]:
+    """The named entries of a scenarios file, in file order."""
+    import yaml
+
+    with open(filename) as f:
+        return list(yaml.safe_load(f).keys())
+
+
+def LoadScenario(
+    *,
+    scenario_name: str | None = None,
+    filename: Path | str | None = None,
+    scenario_text: str = "",
+) -> Scenario:
+    """Returns the named scenario of `filename` (default: the built-in file),
+    with the YAML mapping `scenario_text` merged on top.
+
+    Raises:
+        InputError: unknown file or name, a misspelled field, a bad value.
+    """
+    filename = Path(filename) if filename is not None else DEFAULT_SCENARIOS_FILE
+    scenario = Scenario()
+    if scenario_name is not None:
+        if not filename.is_file():
+            raise InputError(f"scenario file not found: {filename}")
+        names = ScenarioNames(filename)
+        if scenario_name not in names:
+            raise InputError(
+                f"unknown scenario {scenario_name!r}; known: {', '.join(names)}"
+            )
+        scenario = _load(filename=str(filename), child_name=scenario_name,
+                         defaults=scenario, where=f"scenario {scenario_name!r}")
+    if scenario_text.strip():
+        scenario = _load(data=scenario_text, defaults=scenario,
+                         where="--scenario_text")
+    scenario.validate()
+    return scenario
+
+
+def _load(*, where: str, **kwargs) -> Scenario:
+    try:
+        return yaml_load_typed(schema=Scenario, **kwargs)
+    except (RuntimeError, ValueError, TypeError) as e:
+        message = " ".join(str(e).split())
+        raise InputError(f"{where}: {message}") from None
+
+
+def DumpScenario(scenario: Scenario) -> str:
+    """The scenario as YAML that LoadScenario(scenario_text=...) reads back."""
+    return yaml_dump_typed(scenario)

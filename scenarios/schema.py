@@ -1,0 +1,312 @@
+"""Typed scenario schema, read by pydrake's `yaml_load_typed`.
+
+Frames: world W has its origin on the table top (z up, table top at z = 0); the
+robot stands on the near side (-y). The task object's frame O sits on the table
+top at the object's pose. Lengths are metres, angles degrees in YAML.
+
+No `from __future__ import annotations` here: Drake's YAML loader reads the raw
+field types.
+"""
+
+import dataclasses as dc
+import math
+
+import numpy as np
+
+from pydrake.multibody.plant import MultibodyPlantConfig
+from pydrake.systems.sensors import CameraConfig
+
+from fabric_imitation.learning.errors import InputError
+
+
+def _check(ok: bool, field: str, value) -> None:
+    if not ok:
+        raise ValueError(f"scenario field {field} has a bad value: {value!r}")
+
+
+@dc.dataclass
+class TableConfig:
+    # Table size x, y, z [m]; its top face is the world's z = 0 plane.
+    size: list[float] = dc.field(default_factory=lambda: [1.0, 1.0, 0.05])
+    # Coulomb friction of the table top.
+    friction: float = 0.5
+
+    def __post_init__(self):
+        _check(len(self.size) == 3 and min(self.size) > 0, "table.size", self.size)
+        _check(self.friction >= 0, "table.friction", self.friction)
+
+
+@dc.dataclass
+class ClothConfig:
+    # Rest size [m]: width along the grasped edge (local x), depth (local y).
+    size: list[float] = dc.field(default_factory=lambda: [0.30, 0.30])
+    # Slab thickness [m].
+    thickness: float = 0.004
+    # Vertices along width, depth and thickness of the tetrahedral slab.
+    resolution: list[int] = dc.field(default_factory=lambda: [12, 12, 2])
+    # FEM material.
+    youngs_modulus: float = 1.0e4
+    poissons_ratio: float = 0.3
+    mass_density: float = 100.0
+    # Rayleigh damping: mass (1/s) and stiffness (s) coefficients.
+    mass_damping: float = 0.5
+    stiffness_damping: float = 0.01
+    # One of linear_corotated, corotated, neohookean, linear.
+    material_model: str = "linear_corotated"
+    # Coulomb friction of the cloth surface.
+    friction: float = 0.5
+    # Cloth centre on the table: x, y [m], yaw [deg]. The grasped edge is the
+    # cloth's local -y edge; the grasped corners are its two ends.
+    pose: list[float] = dc.field(default_factory=lambda: [0.0, 0.22, 0.0])
+    # Side [m] of the square capture region at each grasped corner: vertices
+    # inside it are fixed to the gripper's clip.
+    grasp_size: float = 0.04
+
+    def __post_init__(self):
+        _check(len(self.size) == 2 and min(self.size) > 0.02, "cloth.size", self.size)
+        _check(0 < self.thickness < 0.05, "cloth.thickness", self.thickness)
+        _check(
+            len(self.resolution) == 3 and min(self.resolution) >= 2,
+            "cloth.resolution",
+            self.resolution,
+        )
+        _check(self.youngs_modulus > 0, "cloth.youngs_modulus", self.youngs_modulus)
+        _check(
+            0 <= self.poissons_ratio < 0.5, "cloth.poissons_ratio", self.poissons_ratio
+        )
+        _check(self.mass_density > 0, "cloth.mass_density", self.mass_density)
+        _check(self.mass_damping >= 0, "cloth.mass_damping", self.mass_damping)
+        _check(
+            self.stiffness_damping >= 0,
+            "cloth.stiffness_damping",
+            self.stiffness_damping,
+        )
+        _check(
+            self.material_model in MATERIAL_MODELS,
+            "cloth.material_model",
+            self.material_model,
+        )
+        _check(self.friction >= 0, "cloth.friction", self.friction)
+        _check(len(self.pose) == 3, "cloth.pose", self.pose)
+        _check(0 < self.grasp_size < min(self.size), "cloth.grasp_size", self.grasp_size)
+
+
+MATERIAL_MODELS = ("linear_corotated", "corotated", "neohookean", "linear")
+OBJECT_KINDS = ("none", "box", "plate")
+
+
+@dc.dataclass
+class ObjectConfig:
+    # none (contact-free prior scene), box (cover task) or plate (hang task).
+    kind: str = "none"
+    # Size x, y, z [m] in the object frame; it stands on the table.
+    size: list[float] = dc.field(default_factory=lambda: [0.14, 0.09, 0.06])
+    # Pose on the table: x, y [m], yaw [deg].
+    pose: list[float] = dc.field(default_factory=lambda: [0.0, -0.14, 0.0])
+    friction: float = 0.5
+
+    def __post_init__(self):
+        _check(self.kind in OBJECT_KINDS, "object.kind", self.kind)
+        _check(len(self.size) == 3 and min(self.size) > 0, "object.size", self.size)
+        _check(len(self.pose) == 3, "object.pose", self.pose)
+        _check(self.friction >= 0, "object.friction", self.friction)
+
+
+GRIPPER_KINDS = ("anchors", "panda")
+
+
+@dc.dataclass
+class GrippersConfig:
+    # anchors (x/y/z prismatic bodies, the paper's virtual anchors) or panda.
+    kind: str = "anchors"
+    # Anchor body mass [kg] and PD gains of its prismatic joints.
+    anchor_mass: float = 0.5
+    kp: float = 3000.0
+    kd: float = 80.0
+    # Mass [kg] of each light clip body that carries a grasped corner.
+    clip_mass: float = 0.005
+
+    def __post_init__(self):
+        _check(self.kind in GRIPPER_KINDS, "grippers.kind", self.kind)
+        _check(self.anchor_mass > 0, "grippers.anchor_mass", self.anchor_mass)
+        _check(self.kp > 0 and self.kd >= 0, "grippers.kp/kd", (self.kp, self.kd))
+        _check(self.clip_mass > 0, "grippers.clip_mass", self.clip_mass)
+
+
+@dc.dataclass
+class WorkspaceConfig:
+    # Axis-aligned box [m] that the cloth and grippers must stay inside.
+    lower: list[float] = dc.field(default_factory=lambda: [-0.45, -0.45, -0.01])
+    upper: list[float] = dc.field(default_factory=lambda: [0.45, 0.45, 0.50])
+
+    def __post_init__(self):
+        _check(
+            len(self.lower) == 3
+            and len(self.upper) == 3
+            and all(lo < hi for lo, hi in zip(self.lower, self.upper, strict=True)),
+            "workspace.lower/upper",
+            (self.lower, self.upper),
+        )
+
+    def contains_xy(self, x: float, y: float) -> bool:
+        return (
+            self.lower[0] <= x <= self.upper[0] and self.lower[1] <= y <= self.upper[1]
+        )
+
+
+@dc.dataclass
+class MotionConfig:
+    # Control step [s]: one relative action [a_L, a_R] per step.
+    step_seconds: float = 0.2
+    # Largest move per axis per step [m] (DESIGN.md section 4).
+    max_step: float = 0.03
+    # Settling time [s] after release before success is judged.
+    settle_seconds: float = 1.5
+
+    def __post_init__(self):
+        _check(self.step_seconds > 0, "motion.step_seconds", self.step_seconds)
+        _check(0 < self.max_step <= 0.1, "motion.max_step", self.max_step)
+        _check(self.settle_seconds >= 0, "motion.settle_seconds", self.settle_seconds)
+
+
+@dc.dataclass
+class SuccessConfig:
+    # box: fraction of the box's top face that the cloth must cover.
+    box_cover_fraction: float = 0.9
+    # Tolerance [m] for "resting on" a surface.
+    rest_tolerance: float = 0.012
+    # hang: lowest cloth point must stay this far [m] above the table.
+    hang_table_clearance: float = 0.01
+
+    def __post_init__(self):
+        _check(
+            0 < self.box_cover_fraction <= 1,
+            "success.box_cover_fraction",
+            self.box_cover_fraction,
+        )
+
+
+def _default_camera() -> CameraConfig:
+    from pydrake.common.schema import Rotation, Transform
+    from pydrake.math import RollPitchYaw
+
+    camera = CameraConfig()
+    camera.name = "camera"
+    camera.width = 160
+    camera.height = 160
+    camera.focal = CameraConfig.FovDegrees(y=50.0)
+    camera.z_near = 0.2
+    camera.z_far = 2.0
+    camera.clipping_near = 0.2
+    camera.clipping_far = 2.0
+    # Straight down from 1 m: image right = world +x, image up = world +y.
+    camera.X_PB = Transform(
+        translation=[0.0, 0.0, 1.0], rotation=Rotation(RollPitchYaw(np.radians([180.0, 0.0, 0.0])))
+    )
+    camera.rgb = True
+    camera.depth = True
+    camera.label = True
+    camera.fps = 5.0
+    camera.background.set(0.9, 0.9, 0.9, 1.0)
+    return camera
+
+
+def _default_plant() -> MultibodyPlantConfig:
+    return MultibodyPlantConfig(
+        time_step=0.01,
+        discrete_contact_approximation="sap",
+        contact_model="point",
+    )
+
+
+@dc.dataclass
+class Scenario:
+    # Seed of every random draw in a run made from this scenario.
+    random_seed: int = 0
+    # Task name used to pick the success predicate and scripted demo:
+    # prior, box, hang (box_big uses the box task).
+    task: str = "prior"
+    plant_config: MultibodyPlantConfig = dc.field(default_factory=_default_plant)
+    table: TableConfig = dc.field(default_factory=TableConfig)
+    cloth: ClothConfig = dc.field(default_factory=ClothConfig)
+    object: ObjectConfig = dc.field(default_factory=ObjectConfig)
+    grippers: GrippersConfig = dc.field(default_factory=GrippersConfig)
+    camera: CameraConfig = dc.field(default_factory=_default_camera)
+    workspace: WorkspaceConfig = dc.field(default_factory=WorkspaceConfig)
+    motion: MotionConfig = dc.field(default_factory=MotionConfig)
+    success: SuccessConfig = dc.field(default_factory=SuccessConfig)
+
+    def __post_init__(self):
+        self.validate()
+
+    def validate(self) -> None:
+        """Checks every field and the cross-field rules; raises InputError.
+
+        `yaml_load_typed` assigns fields after construction, so the loader
+        calls this again on the loaded result.
+        """
+        try:
+            for sub in (self.table, self.cloth, self.object, self.grippers,
+                        self.workspace, self.motion, self.success):
+                sub.__post_init__()
+            _check(self.task in TASKS, "task", self.task)
+            _check(self.plant_config.time_step > 0, "plant_config.time_step",
+                   self.plant_config.time_step)
+        except ValueError as e:
+            raise InputError(str(e)) from None
+        self._check_layout()
+
+    def _check_layout(self) -> None:
+        cloth_xy = footprint(self.cloth.pose, self.cloth.size)
+        half_table = np.array(self.table.size[:2]) / 2
+        if np.any(np.abs(cloth_xy) > half_table + 1e-9):
+            raise InputError(
+                f"cloth of size {self.cloth.size} at pose {self.cloth.pose} does "
+                f"not fit on the {self.table.size[0]} x {self.table.size[1]} m table"
+            )
+        if not all(self.workspace.contains_xy(*c) for c in cloth_xy):
+            raise InputError(
+                f"cloth at pose {self.cloth.pose} is outside the workspace"
+            )
+        if self.object.kind == "none":
+            return
+        obj_xy = footprint(self.object.pose, self.object.size[:2])
+        if not all(self.workspace.contains_xy(*c) for c in obj_xy):
+            raise InputError(
+                f"object pose {self.object.pose} is outside the workspace "
+                f"x {self.workspace.lower[0]}..{self.workspace.upper[0]}, "
+                f"y {self.workspace.lower[1]}..{self.workspace.upper[1]} m"
+            )
+        if rectangles_overlap(cloth_xy, obj_xy, margin=0.01):
+            raise InputError(
+                f"object pose {self.object.pose} overlaps the cloth lying at "
+                f"{self.cloth.pose}"
+            )
+
+
+TASKS = ("prior", "box", "hang")
+
+
+def yaw_rad(pose: list[float]) -> float:
+    """Yaw of an [x, y, yaw_deg] pose, in radians."""
+    return math.radians(pose[2])
+
+
+def footprint(pose: list[float], size: list[float]) -> np.ndarray:
+    """Corners (4, 2) in world xy of a size[0] x size[1] rectangle at pose."""
+    c, s = math.cos(yaw_rad(pose)), math.sin(yaw_rad(pose))
+    hx, hy = size[0] / 2, size[1] / 2
+    local = np.array([[-hx, -hy], [hx, -hy], [hx, hy], [-hx, hy]])
+    return local @ np.array([[c, s], [-s, c]]) + np.array(pose[:2])
+
+
+def rectangles_overlap(a: np.ndarray, b: np.ndarray, margin: float = 0.0) -> bool:
+    """Separating-axis test for two convex quads given as (4, 2) corners."""
+    for poly in (a, b):
+        for i in range(4):
+            edge = poly[(i + 1) % 4] - poly[i]
+            axis = np.array([-edge[1], edge[0]]) / np.linalg.norm(edge)
+            pa, pb = a @ axis, b @ axis
+            if pa.max() + margin < pb.min() or pb.max() + margin < pa.min():
+                return False
+    return True
