@@ -3,10 +3,9 @@ hardware_sim does)."""
 
 from pathlib import Path
 
-from pydrake.common.yaml import yaml_dump_typed, yaml_load_typed
-
 from fabric_imitation.learning.errors import InputError
 from fabric_imitation.scenarios.schema import Scenario
+from pydrake.common.yaml import yaml_dump_typed, yaml_load_typed
 
 DEFAULT_SCENARIOS_FILE = Path(__file__).with_name("scenarios.yaml")
 
@@ -41,11 +40,14 @@ def LoadScenario(
             raise InputError(
                 f"unknown scenario {scenario_name!r}; known: {', '.join(names)}"
             )
-        scenario = _load(filename=str(filename), child_name=scenario_name,
-                         defaults=scenario, where=f"scenario {scenario_name!r}")
+        scenario = _load(
+            filename=str(filename),
+            child_name=scenario_name,
+            defaults=scenario,
+            where=f"scenario {scenario_name!r}",
+        )
     if scenario_text.strip():
-        scenario = _load(data=scenario_text, defaults=scenario,
-                         where="--scenario_text")
+        scenario = _load(data=scenario_text, defaults=scenario, where="--scenario_text")
     scenario.validate()
     return scenario
 

@@ -1,0 +1,106 @@
+"""Scripted demonstrations, defined in the task object's frame O so that they
+work at any object pose (DESIGN.md section 8).
+
+A plan is a list of gripper waypoints; `PlanActions` cuts it into relative
+moves [a_L, a_R] of at most `motion.max_step` per axis, one per control step.
+The actions drive the simulation only: a recorded demo keeps none of them.
+"""
+
+import dataclasses as dc
+
+import numpy as np
+from fabric_imitation.diagrams.station import GraspCorners
+from fabric_imitation.learning.errors import InputError
+from fabric_imitation.learning.state import object_to_world
+from fabric_imitation.scenarios.schema import Scenario, yaw_rad
+
+
+@dc.dataclass
+class DemoPlan:
+    """Actions (K, 6) [a_L, a_R] and the step at which the grasps open."""
+
+    actions: np.ndarray
+    release_step: int
+    waypoints_W: list[np.ndarray]
+
+
+def _object_pose(scenario: Scenario) -> np.ndarray:
+    pose = scenario.object.pose
+    return np.array([pose[0], pose[1], yaw_rad(pose)])
+
+
+def _pair(scenario: Scenario, half_width: float, y: float, z: float) -> np.ndarray:
+    """World positions (2, 3) of left/right grippers at object-frame (-+w, y, z)."""
+    p_O = np.array([[-half_width, y, z], [half_width, y, z]])
+    return object_to_world(p_O, _object_pose(scenario))
+
+
+def _cover_waypoints(scenario: Scenario, start: np.ndarray) -> list[np.ndarray]:
+    """Box cover: lift the grasped edge, bring it behind the box, drag the cloth
+    over the top towards the robot, lower it just in front of the box."""
+    sx, sy, sz = scenario.object.size
+    w = 0.45 * scenario.cloth.size[0]
+    lift = start.copy()
+    lift[:, 2] = sz + 0.06
+    return [
+        lift,
+        _pair(scenario, w, sy / 2 + 0.05, sz + 0.08),
+        _pair(scenario, w, -sy / 2 - 0.02, sz + 0.06),
+        _pair(scenario, w, -sy / 2 - 0.035, 0.015),
+    ]
+
+
+def _hang_waypoints(scenario: Scenario, start: np.ndarray) -> list[np.ndarray]:
+    """Hang: lift the cloth clear of the table, bring it behind the plate,
+    carry it across high so its lower part catches behind the plate, then
+    lower the grasped edge in front of the plate until a little more than
+    half the cloth hangs on the near side, and release.
+
+    The grippers are closer together than for the box (0.76 of the edge) so
+    the grasped corners pass near the plate's ends; with 0.9 the corners fell
+    past the ends and the cloth slid off behind (measured)."""
+    sx, sy, sz = scenario.object.size
+    w = 0.38 * scenario.cloth.size[0]
+    high = max(sz, scenario.cloth.size[1]) + 0.06
+    lift = start.copy()
+    lift[:, 2] = high
+    return [
+        lift,
+        _pair(scenario, w, sy / 2 + 0.06, high),
+        _pair(scenario, w, -sy / 2 - 0.04, high),
+        _pair(scenario, w, -sy / 2 - 0.03, sz - 0.5 * scenario.cloth.size[1] - 0.01),
+    ]
+
+
+_WAYPOINTS = {"box": _cover_waypoints, "hang": _hang_waypoints}
+
+
+def PlanActions(
+    scenario: Scenario, waypoints: list[np.ndarray], start: np.ndarray
+) -> np.ndarray:
+    """Cuts the straight segments between waypoints into steps of at most
+    `motion.max_step` per axis for both grippers."""
+    max_step = scenario.motion.max_step
+    actions = []
+    current = start
+    for target in waypoints:
+        delta = target - current
+        n = max(1, int(np.ceil(np.abs(delta).max() / max_step - 1e-9)))
+        actions += [(delta / n).ravel()] * n
+        current = target
+    return np.array(actions)
+
+
+def ScriptedDemoPlan(scenario: Scenario, *, hold_steps: int = 1) -> DemoPlan:
+    """The scripted demonstration of the scenario's task."""
+    if scenario.task not in _WAYPOINTS:
+        raise InputError(
+            f"scenario task {scenario.task!r} has no scripted demonstration "
+            f"(tasks with one: {', '.join(_WAYPOINTS)})"
+        )
+    corners = GraspCorners(scenario)
+    start = np.stack([corners["left"], corners["right"]])
+    waypoints = _WAYPOINTS[scenario.task](scenario, start)
+    moves = PlanActions(scenario, waypoints, start)
+    actions = np.concatenate([moves, np.zeros((hold_steps, 6))])
+    return DemoPlan(actions=actions, release_step=len(actions), waypoints_W=waypoints)

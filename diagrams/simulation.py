@@ -1,0 +1,236 @@
+"""Open-loop runs of the cloth station: a fixed action list (scripted demo,
+holding still) through the GripperTargetIntegrator, with frame capture,
+release, settling, meshcat recording and camera video."""
+
+import dataclasses as dc
+import sys
+import time
+from collections.abc import Callable
+
+import numpy as np
+from fabric_imitation.diagrams.cloth_mesh import TopTriangles
+from fabric_imitation.diagrams.station import (
+    SIDES,
+    AddReleaseMonitor,
+    GraspCorners,
+    MakeClothStation,
+    StationPorts,
+)
+from fabric_imitation.diagrams.success import SuccessReport, TaskSuccess
+from fabric_imitation.scenarios.schema import Scenario
+from fabric_imitation.systems.targets import ActionPlayer, GripperTargetIntegrator
+from fabric_imitation.systems.visualization import ClothFrameRecorder
+from pydrake.geometry import Meshcat
+from pydrake.systems.analysis import Simulator
+from pydrake.systems.framework import Diagram, DiagramBuilder
+
+
+@dc.dataclass
+class Frame:
+    """One observation, plus simulation-only ground truth."""
+
+    time: float
+    rgb: np.ndarray  # (H, W, 3) uint8
+    depth: np.ndarray  # (H, W) float32 metres, inf where nothing
+    mask: np.ndarray  # (H, W) uint8, 255 on the cloth
+    keypoints_W: np.ndarray  # (M, 3) ground truth
+    positions_W: np.ndarray  # (N, 3) ground truth
+    grippers_W: np.ndarray  # (2, 3) measured
+
+
+class SimulationDiverged(RuntimeError):
+    """The physics engine failed or produced non-finite cloth positions."""
+
+
+def CaptureFrame(station: Diagram, station_context) -> Frame:
+    """Reads the station's camera and ground-truth ports."""
+
+    def port(name):
+        return station.GetOutputPort(name).Eval(station_context)
+
+    return Frame(
+        time=station_context.get_time(),
+        rgb=np.array(port(StationPorts.RGB).data[:, :, :3]),
+        depth=np.array(port(StationPorts.DEPTH).data[:, :, 0]),
+        mask=np.array(port(StationPorts.MASK).data[:, :, 0]),
+        keypoints_W=np.array(port(StationPorts.CLOTH_KEYPOINTS)).reshape(-1, 3),
+        positions_W=np.array(port(StationPorts.CLOTH_POSITIONS)).reshape(-1, 3),
+        grippers_W=np.stack([port(StationPorts.ee_measured(s)) for s in SIDES]),
+    )
+
+
+@dc.dataclass
+class RunResult:
+    scenario: Scenario
+    frames: list[Frame]  # initial + one per control step, up to the release
+    final: Frame  # after release and settling
+    success: SuccessReport
+    sim_seconds: float
+    wall_seconds: float
+    error: str | None = None
+
+    @property
+    def realtime_factor(self) -> float:
+        return self.sim_seconds / max(self.wall_seconds, 1e-9)
+
+
+class OpenLoopRun:
+    """A station driven by a fixed action list.
+
+    Args:
+        scenario: the scenario.
+        actions: (K, 6) relative moves, one per control step.
+        release_step: the control step at which the grasps open (None: never).
+        meshcat: record the run into this meshcat (cloth animated).
+    """
+
+    def __init__(
+        self,
+        scenario: Scenario,
+        *,
+        actions: np.ndarray,
+        release_step: int | None,
+        meshcat: Meshcat | None = None,
+    ):
+        self.scenario = scenario
+        self.actions = np.asarray(actions, dtype=float).reshape(-1, 6)
+        self.release_step = release_step
+        self.step_seconds = scenario.motion.step_seconds
+        builder = DiagramBuilder()
+        station = builder.AddNamedSystem(
+            "station", MakeClothStation(scenario, meshcat=meshcat)
+        )
+        integrator = builder.AddNamedSystem(
+            "targets", GripperTargetIntegrator(step_seconds=self.step_seconds)
+        )
+        player = builder.AddNamedSystem(
+            "player",
+            ActionPlayer(
+                actions=self.actions,
+                step_seconds=self.step_seconds,
+                release_step=release_step,
+            ),
+        )
+        builder.Connect(
+            player.GetOutputPort("action"), integrator.GetInputPort("action")
+        )
+        builder.Connect(
+            player.GetOutputPort("release"), station.GetInputPort(StationPorts.RELEASE)
+        )
+        for side in SIDES:
+            builder.Connect(
+                integrator.GetOutputPort(f"{side}.ee_target"),
+                station.GetInputPort(StationPorts.ee_target(side)),
+            )
+        self.meshcat = meshcat
+        if meshcat is not None:
+            self._add_recording(builder, station, meshcat)
+        self.diagram = builder.Build()
+        self.station = station
+        self.simulator = Simulator(self.diagram)
+        AddReleaseMonitor(self.simulator, station)
+        self.context = self.simulator.get_mutable_context()
+        corners = GraspCorners(scenario)
+        integrator.SetInitialPositions(
+            integrator.GetMyMutableContextFromRoot(self.context),
+            corners["left"],
+            corners["right"],
+        )
+        self.station_context = station.GetMyContextFromRoot(self.context)
+        self.simulator.Initialize()
+
+    def _add_recording(self, builder, station, meshcat: Meshcat) -> None:
+        handles = station.handles
+        recorder = builder.AddNamedSystem(
+            "cloth_recorder",
+            ClothFrameRecorder(
+                meshcat=meshcat,
+                num_vertices=len(handles.mesh.vertices),
+                triangles=TopTriangles(handles.mesh.top_layer),
+                period=1 / 16,
+            ),
+        )
+        builder.Connect(
+            station.GetOutputPort(StationPorts.CLOTH_POSITIONS),
+            recorder.GetInputPort("positions"),
+        )
+
+    @property
+    def num_steps(self) -> int:
+        return len(self.actions)
+
+    def capture(self) -> Frame:
+        return CaptureFrame(self.station, self.station_context)
+
+    def advance_to(self, t: float) -> None:
+        try:
+            self.simulator.AdvanceTo(t)
+        except RuntimeError as e:
+            raise SimulationDiverged(" ".join(str(e).split())[:300]) from None
+        positions = self.station.GetOutputPort(StationPorts.CLOTH_POSITIONS).Eval(
+            self.station_context
+        )
+        if not np.all(np.isfinite(positions)):
+            raise SimulationDiverged(f"non-finite cloth positions at t = {t:.2f} s")
+
+    def run(
+        self,
+        *,
+        capture_frames: bool = True,
+        settle: bool = True,
+        progress: bool = False,
+        on_step: Callable[[int, Frame | None], None] | None = None,
+    ) -> RunResult:
+        """Runs every action (capturing a frame after each), then releases and
+        settles for `motion.settle_seconds` if a release step was given."""
+        wall0 = time.perf_counter()
+        frames = [self.capture()] if capture_frames else []
+        steps = range(self.num_steps)
+        bar = None
+        if progress:
+            from tqdm import tqdm
+
+            bar = tqdm(
+                total=self.num_steps,
+                desc=self.scenario.task,
+                unit="step",
+                file=sys.stderr,
+                leave=False,
+            )
+        error = None
+        try:
+            for k in steps:
+                self.advance_to((k + 1) * self.step_seconds)
+                frame = self.capture() if capture_frames else None
+                if frame is not None:
+                    frames.append(frame)
+                if on_step is not None:
+                    on_step(k, frame)
+                if bar is not None:
+                    bar.update()
+            if settle and self.release_step is not None:
+                t_release = self.release_step * self.step_seconds
+                self.advance_to(
+                    max(t_release, self.context.get_time())
+                    + self.scenario.motion.settle_seconds
+                )
+        except SimulationDiverged as e:
+            error = str(e)
+        finally:
+            if bar is not None:
+                bar.close()
+        final = self.capture()
+        report = TaskSuccess(
+            self.scenario, final.positions_W, self.station.handles.mesh.top_layer
+        )
+        if error is not None:
+            report = SuccessReport(False, {"error": error})
+        return RunResult(
+            scenario=self.scenario,
+            frames=frames,
+            final=final,
+            success=report,
+            sim_seconds=self.context.get_time(),
+            wall_seconds=time.perf_counter() - wall0,
+            error=error,
+        )

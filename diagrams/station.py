@@ -1,0 +1,475 @@
+"""The cloth station: MultibodyPlant + SceneGraph with table, task object, FEM
+cloth, two grippers holding the cloth's near corners, and a top-down RGB-D
+camera. Built from a Scenario, in the manner of `MakeHardwareStation`.
+
+Exported ports (names in `StationPorts`):
+
+    inputs   left.ee_target, right.ee_target   gripper position targets, world [m]
+             release                           > 0.5 opens both grasps (latched)
+    outputs  left.ee_position_measured, right.ee_position_measured
+             camera.rgb_image, camera.depth_image, camera.label_image
+             camera.fabric_mask                 ImageGrey8U, 255 on the cloth
+             object.pose                        RigidTransform X_WO
+             released                           1 once the grasps are open
+             cloth.positions                    simulation only: 3N vertex positions
+             cloth.keypoints                    simulation only: 3M ordered keypoints
+
+Opening the grasps changes plant parameters, which only a simulator monitor
+may do: call `AddReleaseMonitor(simulator, station)` on every Simulator that
+runs a station (the runners in this package do).
+"""
+
+import dataclasses as dc
+
+import numpy as np
+from fabric_imitation.diagrams.cloth_mesh import ClothMesh, MakeClothMesh
+from fabric_imitation.scenarios.schema import Scenario, yaw_rad
+from fabric_imitation.systems.station_parts import (
+    ClothGroundTruth,
+    FabricMask,
+    ReleaseLatch,
+)
+from pydrake.common import MemoryFile
+from pydrake.common.value import AbstractValue
+from pydrake.geometry import (
+    AddContactMaterial,
+    Box,
+    GeometryInstance,
+    InMemoryMesh,
+    MakePhongIllustrationProperties,
+    MakeRenderEngineVtk,
+    Mesh,
+    MeshcatVisualizer,
+    MeshcatVisualizerParams,
+    PerceptionProperties,
+    ProximityProperties,
+    RenderEngineVtkParams,
+    RenderLabel,
+    Rgba,
+    Role,
+    Sphere,
+)
+from pydrake.math import RigidTransform, RotationMatrix
+from pydrake.multibody.fem import DeformableBodyConfig, MaterialModel
+from pydrake.multibody.plant import (
+    AddMultibodyPlant,
+    CoulombFriction,
+    MultibodyPlant,
+)
+from pydrake.multibody.tree import (
+    MultibodyConstraintId,
+    PdControllerGains,
+    PrismaticJoint,
+    SpatialInertia,
+)
+from pydrake.systems.analysis import Simulator
+from pydrake.systems.framework import Diagram, DiagramBuilder, EventStatus
+from pydrake.systems.primitives import (
+    ConstantValueSource,
+    Demultiplexer,
+    StateInterpolatorWithDiscreteDerivative,
+)
+from pydrake.systems.sensors import CameraInfo, RgbdSensor
+
+NUM_KEYPOINTS = 8
+CLOTH_LABEL = 7
+TABLE_LABEL = 1
+OBJECT_LABEL = 2
+SIDES = ("left", "right")
+CLIP_RADIUS = 0.01
+
+
+class StationPorts:
+    """Port names of the station (one place, so nobody retypes them)."""
+
+    @staticmethod
+    def ee_target(side: str) -> str:
+        return f"{side}.ee_target"
+
+    @staticmethod
+    def ee_measured(side: str) -> str:
+        return f"{side}.ee_position_measured"
+
+    RELEASE = "release"
+    RELEASED = "released"
+    RGB = "camera.rgb_image"
+    DEPTH = "camera.depth_image"
+    LABEL = "camera.label_image"
+    MASK = "camera.fabric_mask"
+    OBJECT_POSE = "object.pose"
+    CLOTH_POSITIONS = "cloth.positions"
+    CLOTH_KEYPOINTS = "cloth.keypoints"
+
+
+@dc.dataclass
+class ClothStationHandles:
+    """What runners need besides ports, attached to the station as `.handles`."""
+
+    scenario: Scenario
+    plant: MultibodyPlant
+    mesh: ClothMesh
+    cloth_id: object  # DeformableBodyId
+    weld_ids: list[MultibodyConstraintId]
+    clips: list  # RigidBody
+    keypoint_vertices: np.ndarray
+    camera_info: CameraInfo
+    X_WCamera: RigidTransform
+    X_WO: RigidTransform
+    X_WCloth: RigidTransform
+
+
+_MATERIALS = {
+    "linear_corotated": MaterialModel.kLinearCorotated,
+    "corotated": MaterialModel.kCorotated,
+    "neohookean": MaterialModel.kNeoHookean,
+    "linear": MaterialModel.kLinear,
+}
+
+
+def PoseOnTable(pose: list[float], z: float = 0.0) -> RigidTransform:
+    """X_W* of an [x, y, yaw_deg] pose on the table top, lifted by z."""
+    return RigidTransform(
+        RotationMatrix.MakeZRotation(yaw_rad(pose)), [pose[0], pose[1], z]
+    )
+
+
+def GraspCorners(scenario: Scenario) -> dict[str, np.ndarray]:
+    """World positions of the grasped corners (top face) at the start."""
+    cloth = scenario.cloth
+    X_WC = PoseOnTable(cloth.pose, cloth.thickness / 2)
+    hx, hy, hz = cloth.size[0] / 2, cloth.size[1] / 2, cloth.thickness / 2
+    return {
+        "left": X_WC @ np.array([-hx, -hy, hz]),
+        "right": X_WC @ np.array([hx, -hy, hz]),
+    }
+
+
+def _friction_props(mu: float) -> ProximityProperties:
+    props = ProximityProperties()
+    AddContactMaterial(friction=CoulombFriction(mu, mu), properties=props)
+    return props
+
+
+def _add_table_and_object(plant: MultibodyPlant, scenario: Scenario) -> RigidTransform:
+    table = scenario.table
+    _register_box(
+        plant,
+        plant.world_body(),
+        RigidTransform([0, 0, -table.size[2] / 2]),
+        table.size,
+        "table",
+        table.friction,
+        Rgba(0.72, 0.56, 0.40, 1.0),
+        TABLE_LABEL,
+    )
+    obj = scenario.object
+    X_WO = PoseOnTable(obj.pose)
+    if obj.kind != "none":
+        body = plant.AddRigidBody(
+            "object",
+            plant.AddModelInstance("object"),
+            SpatialInertia.SolidBoxWithMass(1.0, *obj.size),
+        )
+        plant.WeldFrames(plant.world_frame(), body.body_frame(), X_WO)
+        _register_box(
+            plant,
+            body,
+            RigidTransform([0, 0, obj.size[2] / 2]),
+            obj.size,
+            obj.kind,
+            obj.friction,
+            Rgba(0.25, 0.35, 0.75, 1.0),
+            OBJECT_LABEL,
+        )
+    return X_WO
+
+
+def _register_box(plant, body, X_BG, size, name, mu, color: Rgba, label: int) -> None:
+    shape = Box(*size)
+    plant.RegisterCollisionGeometry(body, X_BG, shape, name, _friction_props(mu))
+    instance = GeometryInstance(X_BG, shape, name)
+    instance.set_illustration_properties(MakePhongIllustrationProperties(color.rgba))
+    instance.set_perception_properties(_perception(color, label))
+    plant.RegisterVisualGeometry(body, instance)
+
+
+def _perception(color: Rgba, label: int) -> PerceptionProperties:
+    """Perception role with a render label, so the camera's label image tells
+    table, object and cloth apart."""
+    perception = PerceptionProperties()
+    perception.AddProperty("label", "id", RenderLabel(label))
+    perception.AddProperty("phong", "diffuse", color)
+    return perception
+
+
+def _add_cloth(plant: MultibodyPlant, scenario: Scenario, mesh: ClothMesh):
+    cloth = scenario.cloth
+    X_WC = PoseOnTable(cloth.pose, cloth.thickness / 2)
+    shape = Mesh(InMemoryMesh(mesh_file=MemoryFile(mesh.to_vtk(), ".vtk", "cloth.vtk")))
+    instance = GeometryInstance(X_WC, shape, "cloth")
+    instance.set_proximity_properties(_friction_props(cloth.friction))
+    instance.set_illustration_properties(
+        MakePhongIllustrationProperties([0.85, 0.15, 0.15, 1.0])
+    )
+    instance.set_perception_properties(
+        _perception(Rgba(0.85, 0.15, 0.15, 1.0), CLOTH_LABEL)
+    )
+    config = DeformableBodyConfig()
+    config.set_youngs_modulus(cloth.youngs_modulus)
+    config.set_poissons_ratio(cloth.poissons_ratio)
+    config.set_mass_density(cloth.mass_density)
+    config.set_mass_damping_coefficient(cloth.mass_damping)
+    config.set_stiffness_damping_coefficient(cloth.stiffness_damping)
+    config.set_material_model(_MATERIALS[cloth.material_model])
+    model = plant.mutable_deformable_model()
+    cloth_id = model.RegisterDeformableBody(instance, config, 1.0)
+    return cloth_id, X_WC
+
+
+def _add_xyz_joints(
+    plant: MultibodyPlant, instance, body, p_W0: np.ndarray, carriage_mass: float
+) -> list[PrismaticJoint]:
+    """Mounts `body` on world through x, y, z prismatic joints (two light
+    carriages in between), starting at p_W0."""
+    carriage = SpatialInertia.SolidSphereWithMass(carriage_mass, 0.01)
+    carriage_x = plant.AddRigidBody("carriage_x", instance, carriage)
+    carriage_y = plant.AddRigidBody("carriage_y", instance, carriage)
+    parents = [plant.world_body(), carriage_x, carriage_y]
+    children = [carriage_x, carriage_y, body]
+    joints = []
+    for axis in range(3):
+        joint = plant.AddJoint(
+            PrismaticJoint(
+                "xyz"[axis],
+                parents[axis].body_frame(),
+                children[axis].body_frame(),
+                np.eye(3)[axis],
+                -1.0,
+                1.0,
+                0.0,
+            )
+        )
+        joint.set_default_translation(p_W0[axis])
+        joints.append(joint)
+    return joints
+
+
+def _add_anchor(plant: MultibodyPlant, scenario: Scenario, side: str, p_W0: np.ndarray):
+    """A gripper on x/y/z prismatic joints with PD-controlled actuators."""
+    g = scenario.grippers
+    instance = plant.AddModelInstance(f"{side}_anchor")
+    anchor = plant.AddRigidBody(
+        "anchor", instance, SpatialInertia.SolidSphereWithMass(g.anchor_mass, 0.02)
+    )
+    for joint in _add_xyz_joints(plant, instance, anchor, p_W0, 0.05):
+        actuator = plant.AddJointActuator(joint.name(), joint, 200.0)
+        actuator.set_controller_gains(PdControllerGains(p=g.kp, d=g.kd))
+    plant.RegisterVisualGeometry(
+        anchor, RigidTransform(), Sphere(0.012), f"{side}_anchor", [0.2, 0.2, 0.2, 1.0]
+    )
+    plant.gravity_field().set_enabled(instance, False)
+    return instance, anchor
+
+
+def _add_clip(
+    plant: MultibodyPlant,
+    scenario: Scenario,
+    side: str,
+    anchor,
+    cloth_id,
+    X_WC: RigidTransform,
+    p_W0: np.ndarray,
+):
+    """A light free clip that carries the grasped corner, welded to the gripper.
+
+    The corner's vertices are fixed to the clip; releasing switches the weld
+    off (a deformable fixed constraint itself cannot be switched off in Drake
+    1.58).
+    """
+    cloth = scenario.cloth
+    instance = plant.AddModelInstance(f"{side}_clip")
+    # Heavy while grasped: SAP regularises a weld by the welded bodies' masses,
+    # and a gram-scale clip let the cloth pull it 8 cm off the gripper
+    # (measured). The release monitor makes it light again.
+    clip = plant.AddRigidBody(
+        "clip",
+        instance,
+        SpatialInertia.SolidSphereWithMass(scenario.grippers.anchor_mass, CLIP_RADIUS),
+    )
+    X_WClip = RigidTransform(p_W0)
+    plant.SetDefaultFloatingBaseBodyPose(clip, X_WClip)
+    plant.gravity_field().set_enabled(instance, False)
+    weld_id = plant.AddWeldConstraint(anchor, RigidTransform(), clip, RigidTransform())
+    # Capture region: a g x g square reaching inwards from the corner.
+    g = cloth.grasp_size
+    sign = -1.0 if side == "left" else 1.0
+    p_C_center = np.array(
+        [sign * (cloth.size[0] / 2 - g / 2), -(cloth.size[1] / 2 - g / 2), 0.0]
+    )
+    X_WG = RigidTransform(X_WC.rotation(), X_WC @ p_C_center)
+    X_ClipG = X_WClip.inverse() @ X_WG
+    # Slightly larger than g so vertices exactly on the square's edge count.
+    shape = Box(g + 1e-3, g + 1e-3, 4 * cloth.thickness)
+    plant.mutable_deformable_model().AddFixedConstraint(
+        cloth_id, clip, X_WClip.inverse() @ X_WC, shape, X_ClipG
+    )
+    return weld_id, clip
+
+
+def MakeClothStation(scenario: Scenario, *, meshcat=None) -> Diagram:
+    """Builds the simulated cloth station for `scenario` (see module docstring).
+
+    Args:
+        scenario: a validated Scenario.
+        meshcat: optional pydrake Meshcat to visualise in.
+    """
+    if scenario.grippers.kind != "anchors":
+        raise NotImplementedError(
+            f"grippers.kind {scenario.grippers.kind!r} is not built yet"
+        )
+    builder = DiagramBuilder()
+    plant, scene_graph = AddMultibodyPlant(scenario.plant_config, builder)
+    plant.set_name("plant")
+    mesh = MakeClothMesh(
+        scenario.cloth.size, scenario.cloth.thickness, scenario.cloth.resolution
+    )
+    X_WO = _add_table_and_object(plant, scenario)
+    cloth_id, X_WC = _add_cloth(plant, scenario, mesh)
+    corners = GraspCorners(scenario)
+    anchors, weld_ids, clips = {}, [], []
+    for side in SIDES:
+        instance, anchor = _add_anchor(plant, scenario, side, corners[side])
+        anchors[side] = instance
+        weld_id, clip = _add_clip(
+            plant, scenario, side, anchor, cloth_id, X_WC, corners[side]
+        )
+        weld_ids.append(weld_id)
+        clips.append(clip)
+    plant.Finalize()
+
+    dt = scenario.plant_config.time_step
+    for side in SIDES:
+        interpolator = builder.AddNamedSystem(
+            f"{side}.target_interpolator",
+            StateInterpolatorWithDiscreteDerivative(3, dt, True),
+        )
+        builder.Connect(
+            interpolator.get_output_port(),
+            plant.get_desired_state_input_port(anchors[side]),
+        )
+        builder.ExportInput(interpolator.get_input_port(), StationPorts.ee_target(side))
+        demux = builder.AddNamedSystem(f"{side}.state_demux", Demultiplexer([3, 3]))
+        builder.Connect(
+            plant.get_state_output_port(anchors[side]), demux.get_input_port()
+        )
+        builder.ExportOutput(demux.get_output_port(0), StationPorts.ee_measured(side))
+
+    latch = builder.AddNamedSystem("release_latch", ReleaseLatch(period=dt))
+    builder.ExportInput(latch.GetInputPort("release"), StationPorts.RELEASE)
+    builder.ExportOutput(latch.GetOutputPort("released"), StationPorts.RELEASED)
+
+    X_WCamera, camera_info = _add_camera(builder, scenario, scene_graph)
+
+    object_pose = builder.AddNamedSystem(
+        "object_pose", ConstantValueSource(AbstractValue.Make(X_WO))
+    )
+    builder.ExportOutput(object_pose.get_output_port(), StationPorts.OBJECT_POSE)
+
+    model = plant.deformable_model()
+    truth = builder.AddNamedSystem(
+        "cloth_ground_truth",
+        ClothGroundTruth(
+            geometry_id=model.GetGeometryId(cloth_id),
+            num_vertices=len(mesh.vertices),
+            keypoint_vertices=mesh.keypoint_vertices(NUM_KEYPOINTS),
+        ),
+    )
+    builder.Connect(
+        plant.get_deformable_body_configuration_output_port(),
+        truth.GetInputPort("configuration"),
+    )
+    builder.ExportOutput(truth.GetOutputPort("positions"), StationPorts.CLOTH_POSITIONS)
+    builder.ExportOutput(truth.GetOutputPort("keypoints"), StationPorts.CLOTH_KEYPOINTS)
+
+    if meshcat is not None:
+        MeshcatVisualizer.AddToBuilder(
+            builder,
+            scene_graph,
+            meshcat,
+            MeshcatVisualizerParams(role=Role.kIllustration, prefix="scene"),
+        )
+
+    station = builder.Build()
+    station.set_name("cloth_station")
+    station.handles = ClothStationHandles(
+        scenario=scenario,
+        plant=plant,
+        mesh=mesh,
+        cloth_id=cloth_id,
+        weld_ids=weld_ids,
+        clips=clips,
+        keypoint_vertices=mesh.keypoint_vertices(NUM_KEYPOINTS),
+        camera_info=camera_info,
+        X_WCamera=X_WCamera,
+        X_WO=X_WO,
+        X_WCloth=X_WC,
+    )
+    return station
+
+
+def _add_camera(builder: DiagramBuilder, scenario: Scenario, scene_graph):
+    """A top-down RgbdSensor that renders on demand (no periodic rendering:
+    images are computed only when a port is evaluated)."""
+    config = scenario.camera
+    if not scene_graph.HasRenderer(config.renderer_name):
+        scene_graph.AddRenderer(
+            config.renderer_name, MakeRenderEngineVtk(RenderEngineVtkParams())
+        )
+    color_camera, depth_camera = config.MakeCameras()
+    X_WCamera = config.X_PB.GetDeterministicValue()
+    sensor = builder.AddNamedSystem(
+        "camera",
+        RgbdSensor(
+            parent_id=scene_graph.world_frame_id(),
+            X_PB=X_WCamera,
+            color_camera=color_camera,
+            depth_camera=depth_camera,
+        ),
+    )
+    builder.Connect(
+        scene_graph.get_query_output_port(), sensor.query_object_input_port()
+    )
+    builder.ExportOutput(sensor.color_image_output_port(), StationPorts.RGB)
+    builder.ExportOutput(sensor.depth_image_32F_output_port(), StationPorts.DEPTH)
+    builder.ExportOutput(sensor.label_image_output_port(), StationPorts.LABEL)
+    mask = builder.AddNamedSystem(
+        "fabric_mask",
+        FabricMask(width=config.width, height=config.height, cloth_label=CLOTH_LABEL),
+    )
+    builder.Connect(sensor.label_image_output_port(), mask.GetInputPort("label_image"))
+    builder.ExportOutput(mask.GetOutputPort("mask"), StationPorts.MASK)
+    return X_WCamera, color_camera.core().intrinsics()
+
+
+def AddReleaseMonitor(simulator: Simulator, station: Diagram) -> None:
+    """Opens the station's grasps (switches the clip welds off) once its
+    `released` output turns on. Chains any monitor already set."""
+    handles = station.handles
+    previous = simulator.get_monitor()
+
+    def monitor(root_context) -> EventStatus:
+        station_context = station.GetMyContextFromRoot(root_context)
+        if station.GetOutputPort(StationPorts.RELEASED).Eval(station_context)[0] > 0.5:
+            plant_context = handles.plant.GetMyMutableContextFromRoot(root_context)
+            for weld, clip in zip(handles.weld_ids, handles.clips, strict=True):
+                if handles.plant.GetConstraintActiveStatus(plant_context, weld):
+                    handles.plant.SetConstraintActiveStatus(plant_context, weld, False)
+                    clip.SetSpatialInertiaInBodyFrame(
+                        plant_context,
+                        SpatialInertia.SolidSphereWithMass(
+                            handles.scenario.grippers.clip_mass, CLIP_RADIUS
+                        ),
+                    )
+        return previous(root_context) if previous else EventStatus.Succeeded()
+
+    simulator.set_monitor(monitor)

@@ -1,0 +1,112 @@
+"""Task success, judged on ground-truth cloth vertices after release and
+settling (DESIGN.md section 8). Plain numpy functions."""
+
+import dataclasses as dc
+
+import numpy as np
+from fabric_imitation.diagrams.cloth_mesh import TopTriangles
+from fabric_imitation.learning.state import world_to_object
+from fabric_imitation.scenarios.schema import Scenario, yaw_rad
+
+
+@dc.dataclass
+class SuccessReport:
+    success: bool
+    details: dict
+
+
+def _object_pose(scenario: Scenario) -> np.ndarray:
+    pose = scenario.object.pose
+    return np.array([pose[0], pose[1], yaw_rad(pose)])
+
+
+def _covered(points_xy: np.ndarray, tri_xy: np.ndarray) -> np.ndarray:
+    """(P,) whether each point lies in any of the (T, 3, 2) triangles."""
+    p = points_xy[:, None, :]
+    a, b, c = tri_xy[None, :, 0], tri_xy[None, :, 1], tri_xy[None, :, 2]
+
+    def cross(u, v, w):
+        return (v[..., 0] - u[..., 0]) * (w[..., 1] - u[..., 1]) - (
+            v[..., 1] - u[..., 1]
+        ) * (w[..., 0] - u[..., 0])
+
+    d1, d2, d3 = cross(a, b, p), cross(b, c, p), cross(c, a, p)
+    neg = (d1 < 0) | (d2 < 0) | (d3 < 0)
+    pos = (d1 > 0) | (d2 > 0) | (d3 > 0)
+    return np.any(~(neg & pos), axis=1)
+
+
+def BoxCoverSuccess(
+    scenario: Scenario, positions_W: np.ndarray, top_grid: np.ndarray
+) -> SuccessReport:
+    """The cloth covers at least `success.box_cover_fraction` of the box's top
+    face and rests on it: a top-face sample point counts as covered when a
+    cloth surface triangle lying on the top face (within the rest tolerance)
+    is over it."""
+    size = np.array(scenario.object.size)
+    tol = scenario.success.rest_tolerance
+    p_O = world_to_object(positions_W, _object_pose(scenario))
+    tris = TopTriangles(top_grid)
+    z = p_O[tris, 2].mean(axis=1)
+    resting = (z > size[2] - 0.5 * tol) & (z < size[2] + tol)
+    n = 21
+    gx = np.linspace(-size[0] / 2, size[0] / 2, n)
+    gy = np.linspace(-size[1] / 2, size[1] / 2, n)
+    samples = np.stack(np.meshgrid(gx, gy, indexing="ij"), -1).reshape(-1, 2)
+    covered = (
+        _covered(samples, p_O[tris[resting]][:, :, :2])
+        if resting.any()
+        else np.zeros(len(samples), bool)
+    )
+    fraction = float(covered.mean())
+    return SuccessReport(
+        success=fraction >= scenario.success.box_cover_fraction,
+        details={"top_face_covered": round(fraction, 3)},
+    )
+
+
+def HangSuccess(scenario: Scenario, positions_W: np.ndarray) -> SuccessReport:
+    """The cloth rests on the plate's top edge, with parts hanging on both
+    sides, and does not reach the table."""
+    size = np.array(scenario.object.size)
+    tol = scenario.success.rest_tolerance
+    thickness = scenario.cloth.thickness
+    p_O = world_to_object(positions_W, _object_pose(scenario))
+    x, y, z = p_O[:, 0], p_O[:, 1], p_O[:, 2]
+    on_edge = (
+        (np.abs(x) <= size[0] / 2)
+        & (np.abs(y) <= size[1] / 2 + tol + thickness)
+        & (z >= size[2] - tol)
+        & (z <= size[2] + tol + 2 * thickness)
+    )
+    low = z < size[2] - 0.03
+    near_side = low & (y < -size[1] / 2)
+    far_side = low & (y > size[1] / 2)
+    clearance = float(z.min())
+    ok = (
+        bool(on_edge.any())
+        and bool(near_side.any())
+        and bool(far_side.any())
+        and clearance > scenario.success.hang_table_clearance
+    )
+    return SuccessReport(
+        success=ok,
+        details={
+            "vertices_on_edge": int(on_edge.sum()),
+            "vertices_near_side": int(near_side.sum()),
+            "vertices_far_side": int(far_side.sum()),
+            "lowest_point": round(clearance, 4),
+        },
+    )
+
+
+def TaskSuccess(
+    scenario: Scenario, positions_W: np.ndarray, top_grid: np.ndarray
+) -> SuccessReport:
+    """Success of the scenario's task; the prior scene has no task (False)."""
+    positions_W = np.asarray(positions_W).reshape(-1, 3)
+    if scenario.task == "box":
+        return BoxCoverSuccess(scenario, positions_W, top_grid)
+    if scenario.task == "hang":
+        return HangSuccess(scenario, positions_W)
+    return SuccessReport(success=False, details={"note": "prior scene has no task"})

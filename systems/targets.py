@@ -1,0 +1,94 @@
+"""Gripper targets from relative moves, and a player for fixed action lists."""
+
+import numpy as np
+from pydrake.systems.framework import BasicVector, EventStatus, LeafSystem
+
+
+class GripperTargetIntegrator(LeafSystem):
+    """Turns relative moves A = [a_L, a_R] (6-vector, metres per control step)
+    into world position targets for the two grippers.
+
+    Every `step_seconds` it latches the ``action`` input: the new segment runs
+    from the current goal to goal + A, and the targets ramp linearly along it
+    over the step, so the grippers move smoothly instead of jumping.
+
+    Input ports: ``action`` (6).
+    Output ports: ``left.ee_target`` (3), ``right.ee_target`` (3),
+    ``goal`` (6, the end of the current segment).
+
+    State: discrete [start (6), goal (6), t_start (1)]. Set the initial gripper
+    positions with `SetInitialPositions(context, p_left, p_right)`.
+    """
+
+    def __init__(self, *, step_seconds: float):
+        super().__init__()
+        self._dt = step_seconds
+        self._action = self.DeclareVectorInputPort("action", 6)
+        self._state = self.DeclareDiscreteState(13)
+        self.DeclarePeriodicDiscreteUpdateEvent(step_seconds, 0.0, self._latch)
+        self.DeclareVectorOutputPort(
+            "left.ee_target", 3, lambda c, o: o.SetFromVector(self._target(c)[:3])
+        )
+        self.DeclareVectorOutputPort(
+            "right.ee_target", 3, lambda c, o: o.SetFromVector(self._target(c)[3:])
+        )
+        self.DeclareVectorOutputPort(
+            "goal", 6, lambda c, o: o.SetFromVector(self._x(c)[6:12])
+        )
+
+    def SetInitialPositions(self, context, p_left, p_right) -> None:
+        p = np.concatenate([p_left, p_right])
+        context.SetDiscreteState(self._state, np.concatenate([p, p, [0.0]]))
+
+    def _x(self, context) -> np.ndarray:
+        return context.get_discrete_state(self._state).value()
+
+    def _target(self, context) -> np.ndarray:
+        x = self._x(context)
+        s = np.clip((context.get_time() - x[12]) / self._dt, 0.0, 1.0)
+        return x[:6] + s * (x[6:12] - x[:6])
+
+    def _latch(self, context, discrete_state) -> EventStatus:
+        x = self._x(context)
+        action = self._action.Eval(context) if self._action.HasValue(context) else 0
+        goal = x[6:12] + action
+        discrete_state.get_mutable_vector(self._state).SetFromVector(
+            np.concatenate([x[6:12], goal, [context.get_time()]])
+        )
+        return EventStatus.Succeeded()
+
+
+class ActionPlayer(LeafSystem):
+    """Plays a fixed list of actions, one per control step, then zeros, and
+    raises ``release`` from step `release_step` on.
+
+    Step k covers [k * step_seconds, (k + 1) * step_seconds).
+
+    Output ports: ``action`` (6), ``release`` (1).
+    """
+
+    def __init__(
+        self, *, actions: np.ndarray, step_seconds: float, release_step: int | None
+    ):
+        super().__init__()
+        self._actions = np.asarray(actions, dtype=float).reshape(-1, 6)
+        self._dt = step_seconds
+        self._release_step = release_step
+        self.DeclareVectorOutputPort("action", 6, self._calc_action)
+        self.DeclareVectorOutputPort("release", 1, self._calc_release)
+
+    def _step(self, context) -> int:
+        # The small offset keeps a step boundary in the step that starts there.
+        return int(np.floor(context.get_time() / self._dt + 1e-6))
+
+    def _calc_action(self, context, output: BasicVector) -> None:
+        k = self._step(context)
+        output.SetFromVector(
+            self._actions[k] if 0 <= k < len(self._actions) else np.zeros(6)
+        )
+
+    def _calc_release(self, context, output: BasicVector) -> None:
+        released = (
+            self._release_step is not None and self._step(context) >= self._release_step
+        )
+        output.SetFromVector([1.0 if released else 0.0])

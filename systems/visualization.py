@@ -1,0 +1,56 @@
+"""Animates the FEM cloth in a meshcat recording.
+
+Drake 1.58's meshcat recording keeps only the last shape of a deformable body.
+This system adds one triangle mesh per frame under ``/cloth_frames`` and
+records each frame's visibility, so the saved HTML replays the cloth's motion.
+"""
+
+import numpy as np
+from pydrake.geometry import Meshcat, Rgba
+from pydrake.systems.framework import EventStatus, LeafSystem
+
+CLOTH_FRAMES_PATH = "/cloth_frames"
+
+
+def FrameName(index: int) -> str:
+    return f"{CLOTH_FRAMES_PATH}/frame_{index:05d}"
+
+
+class ClothFrameRecorder(LeafSystem):
+    """Every `period` seconds while meshcat is recording, draws the cloth's top
+    surface as frame i and makes it the only visible frame from then on.
+
+    The frame index is derived from the time, so the system has no state.
+
+    Input ports: ``positions`` (3N cloth vertex positions, world).
+    """
+
+    def __init__(
+        self,
+        *,
+        meshcat: Meshcat,
+        num_vertices: int,
+        triangles: np.ndarray,
+        period: float,
+        rgba: Rgba = Rgba(0.85, 0.15, 0.15, 1.0),
+    ):
+        super().__init__()
+        self._meshcat = meshcat
+        self._faces = np.ascontiguousarray(np.asarray(triangles, np.int32).T)
+        self._period = period
+        self._rgba = rgba
+        self._positions = self.DeclareVectorInputPort("positions", 3 * num_vertices)
+        self.DeclarePeriodicPublishEvent(period, 0.0, self._publish)
+
+    def _publish(self, context) -> EventStatus:
+        t = context.get_time()
+        i = int(round(t / self._period))
+        p = self._positions.Eval(context).reshape(-1, 3).T
+        path = FrameName(i)
+        self._meshcat.SetTriangleMesh(path, p, self._faces, self._rgba)
+        # Hidden before its time, shown from t, hidden when the next one shows.
+        if i > 0:
+            self._meshcat.SetProperty(path, "visible", False, 0.0)
+            self._meshcat.SetProperty(FrameName(i - 1), "visible", False, t)
+        self._meshcat.SetProperty(path, "visible", True, t)
+        return EventStatus.Succeeded()
