@@ -38,7 +38,7 @@ class Frame:
     grippers_W: np.ndarray  # (2, 3) measured
 
 
-class SimulationDiverged(RuntimeError):
+class SimulationDivergedError(RuntimeError):
     """The physics engine failed or produced non-finite cloth positions."""
 
 
@@ -166,12 +166,14 @@ class OpenLoopRun:
         try:
             self.simulator.AdvanceTo(t)
         except RuntimeError as e:
-            raise SimulationDiverged(" ".join(str(e).split())[:300]) from None
+            raise SimulationDivergedError(" ".join(str(e).split())[:300]) from None
         positions = self.station.GetOutputPort(StationPorts.CLOTH_POSITIONS).Eval(
             self.station_context
         )
         if not np.all(np.isfinite(positions)):
-            raise SimulationDiverged(f"non-finite cloth positions at t = {t:.2f} s")
+            raise SimulationDivergedError(
+                f"non-finite cloth positions at t = {t:.2f} s"
+            )
 
     def run(
         self,
@@ -214,7 +216,7 @@ class OpenLoopRun:
                     max(t_release, self.context.get_time())
                     + self.scenario.motion.settle_seconds
                 )
-        except SimulationDiverged as e:
+        except SimulationDivergedError as e:
             error = str(e)
         finally:
             if bar is not None:

@@ -10,6 +10,7 @@ from pydrake.geometry import Meshcat, Rgba
 from pydrake.systems.framework import EventStatus, LeafSystem
 
 CLOTH_FRAMES_PATH = "/cloth_frames"
+CLOTH_RGBA = Rgba(0.85, 0.15, 0.15, 1.0)
 
 
 def FrameName(index: int) -> str:
@@ -32,7 +33,7 @@ class ClothFrameRecorder(LeafSystem):
         num_vertices: int,
         triangles: np.ndarray,
         period: float,
-        rgba: Rgba = Rgba(0.85, 0.15, 0.15, 1.0),
+        rgba: Rgba = CLOTH_RGBA,
     ):
         super().__init__()
         self._meshcat = meshcat

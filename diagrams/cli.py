@@ -1,0 +1,215 @@
+"""The `fabric-imitate` command line. Thin: each subcommand parses flags and
+calls one keyword-only library function; every subcommand accepts --json
+(its summary as one JSON object on stdout; progress and logs on stderr)."""
+
+import argparse
+import json
+import sys
+from collections.abc import Callable
+from pathlib import Path
+
+from fabric_imitation.learning.errors import InputError
+
+_COMMANDS: dict[str, tuple[Callable, Callable]] = {}
+
+
+def command(name: str):
+    """Registers `run(args) -> dict` under `name`; `add(parser)` adds flags."""
+
+    def wrap(add: Callable):
+        def register(run: Callable):
+            _COMMANDS[name] = (add, run)
+            return run
+
+        return register
+
+    return wrap
+
+
+def _scenario_flags(parser: argparse.ArgumentParser, *, required=True) -> None:
+    parser.add_argument(
+        "--scenario",
+        required=required,
+        help="named scenario (see scenarios/scenarios.yaml)",
+    )
+    parser.add_argument(
+        "--scenario_file",
+        type=Path,
+        default=None,
+        help="YAML file of named scenarios (default: built-in)",
+    )
+    parser.add_argument(
+        "--scenario_text",
+        default="",
+        help="YAML mapping merged on top of the named scenario",
+    )
+    parser.add_argument(
+        "--object-pose",
+        nargs=3,
+        type=float,
+        default=None,
+        metavar=("X", "Y", "YAW"),
+        help="object pose on the table: x, y [m], yaw [deg]",
+    )
+
+
+def LoadScenarioFromArgs(args):
+    from fabric_imitation.scenarios.loader import LoadScenario
+
+    text = args.scenario_text
+    if getattr(args, "object_pose", None) is not None:
+        x, y, yaw = args.object_pose
+        text += f"\nobject: {{pose: [{x}, {y}, {yaw}]}}\n"
+    scenario = LoadScenario(
+        scenario_name=args.scenario, filename=args.scenario_file, scenario_text=text
+    )
+    if args.object_pose is not None and scenario.object.kind == "none":
+        raise InputError(f"scenario {args.scenario!r} has no object to place")
+    return scenario
+
+
+def _add_simulate(p):
+    _scenario_flags(p)
+    p.add_argument(
+        "--duration",
+        type=float,
+        default=2.0,
+        help="seconds to simulate with --motion hold",
+    )
+    p.add_argument(
+        "--motion",
+        choices=["hold", "scripted"],
+        default="hold",
+        help="hold the grippers still, or run the task's scripted demo",
+    )
+    p.add_argument(
+        "--record",
+        type=Path,
+        default=None,
+        help="write a meshcat recording (HTML) here",
+    )
+    p.add_argument(
+        "--video", type=Path, default=None, help="write the camera's view (mp4) here"
+    )
+
+
+@command("simulate")(_add_simulate)
+def _simulate(args) -> dict:
+    from fabric_imitation.diagrams.runs import Simulate
+
+    return Simulate(
+        scenario=LoadScenarioFromArgs(args),
+        scenario_name=args.scenario,
+        duration=args.duration,
+        motion=args.motion,
+        record=args.record,
+        video=args.video,
+    )
+
+
+def _add_demo_record(p):
+    _scenario_flags(p)
+    p.add_argument("--out", type=Path, required=True, help="demo directory to write")
+    p.add_argument(
+        "--record",
+        type=Path,
+        default=None,
+        help="write a meshcat recording (HTML) here",
+    )
+    p.add_argument(
+        "--video", type=Path, default=None, help="write the camera's view (mp4) here"
+    )
+
+
+@command("demo record")(_add_demo_record)
+def _demo_record(args) -> dict:
+    from fabric_imitation.diagrams.demo_record import RecordDemo
+
+    return RecordDemo(
+        scenario=LoadScenarioFromArgs(args),
+        scenario_name=args.scenario,
+        out=args.out,
+        record=args.record,
+        video=args.video,
+    )
+
+
+def _add_bench_sim(p):
+    p.add_argument(
+        "--scenarios",
+        nargs="+",
+        default=None,
+        help="scenario names (default: prior box hang box_big)",
+    )
+    p.add_argument(
+        "--flat-seconds",
+        type=float,
+        default=1.0,
+        help="simulated seconds of the flat phase",
+    )
+    p.add_argument("--out", type=Path, default=None, help="also write the JSON here")
+
+
+@command("bench sim")(_add_bench_sim)
+def _bench_sim(args) -> dict:
+    from fabric_imitation.diagrams.bench import BenchSim
+
+    return BenchSim(
+        scenario_names=args.scenarios, flat_seconds=args.flat_seconds, out=args.out
+    )
+
+
+def _build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="fabric-imitate",
+        description="One-shot imitation of cloth tasks from one demo video.",
+    )
+    groups = parser.add_subparsers(dest="command", required=True)
+    nested: dict[str, argparse._SubParsersAction] = {}
+    for name, (add, _) in _COMMANDS.items():
+        words = name.split()
+        if len(words) == 1:
+            sub = groups.add_parser(words[0])
+        else:
+            if words[0] not in nested:
+                group = groups.add_parser(words[0])
+                nested[words[0]] = group.add_subparsers(
+                    dest="subcommand", required=True
+                )
+            sub = nested[words[0]].add_parser(words[1])
+        sub.add_argument(
+            "--json",
+            action="store_true",
+            help="print the summary as one JSON object on stdout",
+        )
+        add(sub)
+        sub.set_defaults(_name=name)
+    return parser
+
+
+def _print(summary: dict, as_json: bool) -> None:
+    if as_json:
+        print(json.dumps(summary, default=str))
+        return
+    for key, value in summary.items():
+        print(f"{key}: {json.dumps(value, default=str)}")
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = _build_parser()
+    args = parser.parse_args(argv)
+    _, run = _COMMANDS[args._name]
+    try:
+        summary = run(args)
+    except InputError as e:
+        print(f"fabric-imitate: error: {e}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print("fabric-imitate: interrupted", file=sys.stderr)
+        return 130
+    _print(summary, args.json)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,124 @@
+"""`fabric-imitate demo record`: run the scripted demonstration of a task and
+save it as an observation-only demo."""
+
+from pathlib import Path
+
+import numpy as np
+from fabric_imitation.diagrams.demos import ScriptedDemoPlan
+from fabric_imitation.diagrams.recording import MakeRecordingMeshcat, SaveRecording
+from fabric_imitation.diagrams.simulation import OpenLoopRun, RunResult
+from fabric_imitation.learning.demo_io import (
+    CameraModel,
+    ExistingDemoRequest,
+    WriteDemo,
+    WriteVideo,
+)
+from fabric_imitation.learning.errors import InputError
+from fabric_imitation.scenarios.loader import DumpScenario
+from fabric_imitation.scenarios.schema import Scenario
+
+
+def StationCameraModel(station) -> CameraModel:
+    info = station.handles.camera_info
+    return CameraModel(
+        width=info.width(),
+        height=info.height(),
+        fx=info.focal_x(),
+        fy=info.focal_y(),
+        cx=info.center_x(),
+        cy=info.center_y(),
+        X_WC=station.handles.X_WCamera.GetAsMatrix4(),
+    )
+
+
+def RunSummary(result: RunResult) -> dict:
+    return {
+        "success": bool(result.success.success),
+        "success_details": result.success.details,
+        "sim_seconds": round(result.sim_seconds, 3),
+        "wall_seconds": round(result.wall_seconds, 3),
+        "realtime_factor": round(result.realtime_factor, 3),
+        "error": result.error,
+    }
+
+
+def RecordDemo(
+    *,
+    scenario: Scenario,
+    scenario_name: str,
+    out: Path,
+    record: Path | None = None,
+    video: Path | None = None,
+    progress: bool = True,
+) -> dict:
+    """Records the scripted demo of `scenario` into `out`; returns a summary.
+
+    Re-running with the same request on a finished directory records nothing
+    and returns the stored summary; a directory holding another demo is an
+    InputError.
+    """
+    out = Path(out)
+    request = {
+        "task": scenario.task,
+        "scenario_name": scenario_name,
+        "object_pose": [round(float(v), 6) for v in scenario.object.pose],
+        "cloth_pose": [round(float(v), 6) for v in scenario.cloth.pose],
+    }
+    existing = ExistingDemoRequest(out)
+    if existing is not None:
+        if {k: existing.get(k) for k in request} != request:
+            raise InputError(
+                f"output directory {out} already holds a different demo "
+                f"({existing.get('scenario_name')} at object pose "
+                f"{existing.get('object_pose')})"
+            )
+        return {
+            **{k: existing[k] for k in existing if k not in ("files",)},
+            "out": str(out),
+            "recorded": False,
+        }
+    plan = ScriptedDemoPlan(scenario)
+    meshcat = MakeRecordingMeshcat() if record else None
+    run = OpenLoopRun(
+        scenario, actions=plan.actions, release_step=plan.release_step, meshcat=meshcat
+    )
+    result = run.run(progress=progress)
+    if result.error is not None:
+        raise RuntimeError(f"the demo simulation failed: {result.error}")
+    frames = result.frames
+    summary = RunSummary(result)
+    summary["frame_times"] = [round(f.time, 4) for f in frames]
+    summary["step_seconds"] = scenario.motion.step_seconds
+    WriteDemo(
+        out,
+        request=request,
+        rgb=[f.rgb for f in frames] + [result.final.rgb],
+        depth=np.stack([f.depth for f in frames]),
+        mask=np.stack([f.mask for f in frames]),
+        final_depth=result.final.depth,
+        final_mask=result.final.mask,
+        camera=StationCameraModel(run.station),
+        scenario_yaml=DumpScenario(scenario),
+        ground_truth={
+            "keypoints_W": np.stack([f.keypoints_W for f in frames]),
+            "final_positions_W": result.final.positions_W,
+            "final_keypoints_W": result.final.keypoints_W,
+        },
+        summary=summary,
+        fps=1.0 / scenario.motion.step_seconds,
+    )
+    if video is not None:
+        WriteVideo(
+            video,
+            [f.rgb for f in frames] + [result.final.rgb],
+            1.0 / scenario.motion.step_seconds,
+        )
+    if record is not None:
+        SaveRecording(meshcat, record)
+    return {
+        **request,
+        "num_frames": len(frames),
+        **summary,
+        "out": str(out),
+        "recorded": True,
+    }

@@ -1,0 +1,57 @@
+"""`fabric-imitate simulate`: one run of a scenario, holding still or scripted."""
+
+from pathlib import Path
+
+import numpy as np
+from fabric_imitation.diagrams.demo_record import RunSummary
+from fabric_imitation.diagrams.demos import ScriptedDemoPlan
+from fabric_imitation.diagrams.recording import MakeRecordingMeshcat, SaveRecording
+from fabric_imitation.diagrams.simulation import OpenLoopRun
+from fabric_imitation.learning.demo_io import WriteVideo
+from fabric_imitation.learning.errors import InputError
+from fabric_imitation.scenarios.schema import Scenario
+
+
+def Simulate(
+    *,
+    scenario: Scenario,
+    scenario_name: str,
+    duration: float = 2.0,
+    motion: str = "hold",
+    record: Path | None = None,
+    video: Path | None = None,
+    progress: bool = True,
+) -> dict:
+    """Simulates `scenario`; `motion` is "hold" (grippers still for `duration`
+    seconds) or "scripted" (the task's scripted demo, release, settling)."""
+    if motion == "hold":
+        if duration <= 0:
+            raise InputError(f"--duration must be positive, got {duration}")
+        steps = int(np.ceil(duration / scenario.motion.step_seconds - 1e-9))
+        actions, release_step = np.zeros((steps, 6)), None
+    elif motion == "scripted":
+        plan = ScriptedDemoPlan(scenario)
+        actions, release_step = plan.actions, plan.release_step
+    else:
+        raise InputError(f"unknown motion {motion!r}; use hold or scripted")
+    meshcat = MakeRecordingMeshcat() if record else None
+    run = OpenLoopRun(
+        scenario, actions=actions, release_step=release_step, meshcat=meshcat
+    )
+    result = run.run(capture_frames=video is not None, progress=progress)
+    if video is not None:
+        WriteVideo(
+            video,
+            [f.rgb for f in result.frames] + [result.final.rgb],
+            1.0 / scenario.motion.step_seconds,
+        )
+    if record is not None:
+        SaveRecording(meshcat, record)
+    return {
+        "scenario": scenario_name,
+        "motion": motion,
+        "cloth_vertices": len(run.station.handles.mesh.vertices),
+        "time_step": scenario.plant_config.time_step,
+        "contact_approximation": scenario.plant_config.discrete_contact_approximation,
+        **RunSummary(result),
+    }
