@@ -134,6 +134,40 @@ def _demo_record(args) -> dict:
     )
 
 
+def _add_collect(p):
+    _scenario_flags(p)
+    p.add_argument(
+        "--transitions",
+        type=int,
+        default=10000,
+        help="number of transitions to collect",
+    )
+    p.add_argument("--out", type=Path, required=True, help="dataset file (HDF5)")
+    p.add_argument("--workers", type=int, default=1, help="parallel workers")
+    p.add_argument("--executor", choices=["local", "ray"], default="local")
+    p.add_argument(
+        "--seed",
+        type=int,
+        default=None,
+        help="random seed (default: the scenario's random_seed)",
+    )
+
+
+@command("collect")(_add_collect)
+def _collect(args) -> dict:
+    from fabric_imitation.diagrams.collect import Collect
+
+    return Collect(
+        scenario=LoadScenarioFromArgs(args),
+        scenario_name=args.scenario,
+        transitions=args.transitions,
+        out=args.out,
+        workers=args.workers,
+        executor=args.executor,
+        seed=args.seed,
+    )
+
+
 def _add_bench_sim(p):
     p.add_argument(
         "--scenarios",

@@ -2,7 +2,7 @@
 work at any object pose (DESIGN.md section 8).
 
 A plan is a list of gripper waypoints; `PlanActions` cuts it into relative
-moves [a_L, a_R] of at most `motion.max_step` per axis, one per control step.
+moves [a_L, a_R] of at most `safety.max_step` per axis, one per control step.
 The actions drive the simulation only: a recorded demo keeps none of them.
 """
 
@@ -79,8 +79,8 @@ def PlanActions(
     scenario: Scenario, waypoints: list[np.ndarray], start: np.ndarray
 ) -> np.ndarray:
     """Cuts the straight segments between waypoints into steps of at most
-    `motion.max_step` per axis for both grippers."""
-    max_step = scenario.motion.max_step
+    `safety.max_step` per axis for both grippers."""
+    max_step = scenario.safety.max_step
     actions = []
     current = start
     for target in waypoints:

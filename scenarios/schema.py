@@ -13,6 +13,7 @@ import math
 
 import numpy as np
 from fabric_imitation.learning.errors import InputError
+from fabric_imitation.learning.safety import SafetyConfig
 from pydrake.multibody.plant import MultibodyPlantConfig
 from pydrake.systems.sensors import CameraConfig
 
@@ -159,14 +160,11 @@ class WorkspaceConfig:
 class MotionConfig:
     # Control step [s]: one relative action [a_L, a_R] per step.
     step_seconds: float = 0.2
-    # Largest move per axis per step [m] (DESIGN.md section 4).
-    max_step: float = 0.03
     # Settling time [s] after release before success is judged.
     settle_seconds: float = 1.5
 
     def __post_init__(self):
         _check(self.step_seconds > 0, "motion.step_seconds", self.step_seconds)
-        _check(0 < self.max_step <= 0.1, "motion.max_step", self.max_step)
         _check(self.settle_seconds >= 0, "motion.settle_seconds", self.settle_seconds)
 
 
@@ -185,6 +183,54 @@ class SuccessConfig:
             0 < self.box_cover_fraction <= 1,
             "success.box_cover_fraction",
             self.box_cover_fraction,
+        )
+
+
+@dc.dataclass
+class CollectionConfig:
+    # Control steps per prior-scene episode before a reset.
+    episode_length: int = 20
+    # Up to this many unrecorded random steps start each episode (randomised
+    # start).
+    max_warmup_steps: int = 2
+    # Candidate actions drawn per step; the first valid one is applied.
+    candidates: int = 256
+    # Each episode draws a drift (mean move per step) uniformly from
+    # [drift_lower, drift_upper] (x, y, z, both grippers alike); candidates are
+    # drift + uniform noise in the action bounds. Drift lets episodes reach
+    # high lifts and long drags that a zero-mean random walk rarely does.
+    drift_lower: list[float] = dc.field(default_factory=lambda: [-0.01, -0.02, -0.005])
+    drift_upper: list[float] = dc.field(default_factory=lambda: [0.01, 0.005, 0.025])
+    # Noise scale as a fraction of the action bound.
+    noise: float = 0.6
+    # Chance that an episode reverses its vertical drift half way (lift, then
+    # lower), so lowering a lifted cloth is in the data too.
+    reverse_probability: float = 0.5
+
+    def __post_init__(self):
+        _check(
+            self.episode_length >= 1, "collection.episode_length", self.episode_length
+        )
+        _check(
+            self.max_warmup_steps >= 0,
+            "collection.max_warmup_steps",
+            self.max_warmup_steps,
+        )
+        _check(self.candidates >= 1, "collection.candidates", self.candidates)
+        _check(
+            len(self.drift_lower) == 3
+            and len(self.drift_upper) == 3
+            and all(
+                a <= b for a, b in zip(self.drift_lower, self.drift_upper, strict=True)
+            ),
+            "collection.drift_lower/upper",
+            (self.drift_lower, self.drift_upper),
+        )
+        _check(0 <= self.noise <= 1, "collection.noise", self.noise)
+        _check(
+            0 <= self.reverse_probability <= 1,
+            "collection.reverse_probability",
+            self.reverse_probability,
         )
 
 
@@ -241,6 +287,8 @@ class Scenario:
     workspace: WorkspaceConfig = dc.field(default_factory=WorkspaceConfig)
     motion: MotionConfig = dc.field(default_factory=MotionConfig)
     success: SuccessConfig = dc.field(default_factory=SuccessConfig)
+    safety: SafetyConfig = dc.field(default_factory=SafetyConfig)
+    collection: CollectionConfig = dc.field(default_factory=CollectionConfig)
 
     def __post_init__(self):
         self.validate()
@@ -260,6 +308,8 @@ class Scenario:
                 self.workspace,
                 self.motion,
                 self.success,
+                self.safety,
+                self.collection,
             ):
                 sub.__post_init__()
             _check(self.task in TASKS, "task", self.task)

@@ -1,0 +1,148 @@
+"""The safe action set A_V(S) (DESIGN.md section 4), one batched function
+shared by data collection and the MPC cost.
+
+Shapes: states S (..., M, 3), actions A (..., 6) = [a_L, a_R], broadcast
+against each other. All tensors are torch; `valid_actions_np` wraps numpy.
+"""
+
+import dataclasses as dc
+import math
+
+import numpy as np
+import torch
+from fabric_imitation.learning.state import corner_indices
+
+
+@dc.dataclass
+class SafetyConfig:
+    # Rule 1: tau_c * L < |s1' - s2'| < tau_f * L (L: grasped-edge rest length).
+    tau_c: float = 0.5
+    tau_f: float = 1.05
+    # Rule 2: angle(a_L, s1 - s3) and angle(a_R, s2 - s4) below this [deg].
+    tau_d_deg: float = 100.0
+    # Moves shorter than this [m] have no direction: rule 2 passes them.
+    min_move: float = 0.002
+    # Rule 4: grippers stay this far [m] outside the object's box.
+    object_margin: float = 0.02
+    # Action bound [m] per axis per step.
+    max_step: float = 0.03
+
+    def __post_init__(self):
+        if not 0 < self.tau_c < self.tau_f:
+            raise ValueError(
+                f"safety.tau_c/tau_f must satisfy 0 < tau_c < tau_f, got "
+                f"{self.tau_c}, {self.tau_f}"
+            )
+        if not 0 < self.tau_d_deg <= 180:
+            raise ValueError(
+                f"safety.tau_d_deg must be in (0, 180], got {self.tau_d_deg}"
+            )
+        if self.max_step <= 0:
+            raise ValueError(f"safety.max_step must be positive, got {self.max_step}")
+
+
+@dc.dataclass
+class SafetyContext:
+    """What the rules need besides the config, in the frame of the states."""
+
+    edge_length: float  # L
+    workspace_lower: np.ndarray  # (3,)
+    workspace_upper: np.ndarray  # (3,)
+    # The task object as an axis-aligned box in the states' frame (the object
+    # frame O: centred at the origin in x, y, from z = 0 up), or None.
+    object_size: np.ndarray | None = None
+
+
+RULES = ("bounds", "distance", "direction", "workspace", "object")
+
+
+def rule_violations(
+    S: torch.Tensor,
+    A: torch.Tensor,
+    config: SafetyConfig,
+    ctx: SafetyContext,
+    S_next: torch.Tensor | None = None,
+) -> dict[str, torch.Tensor]:
+    """Boolean tensors (...) per rule, True where the rule is violated.
+
+    Rule 3 (workspace) is checked on `S_next` when given (the MPC's predicted
+    state); otherwise on S with the grasped corners moved by A (data
+    collection, before the move is made).
+    """
+    m = S.shape[-2]
+    idx = corner_indices(m)
+    a_l, a_r = A[..., :3], A[..., 3:]
+    s1, s2 = S[..., idx["s1"], :], S[..., idx["s2"], :]
+    s3, s4 = S[..., idx["s3"], :], S[..., idx["s4"], :]
+    s1n, s2n = s1 + a_l, s2 + a_r
+    out = {}
+    out["bounds"] = (A.abs() > config.max_step + 1e-9).any(-1)
+    d = (s1n - s2n).norm(dim=-1)
+    L = ctx.edge_length
+    out["distance"] = (d <= config.tau_c * L) | (d >= config.tau_f * L)
+    cos_max = math.cos(math.radians(config.tau_d_deg))
+
+    def bad_direction(a, edge):
+        na, ne = a.norm(dim=-1), edge.norm(dim=-1)
+        cos = (a * edge).sum(-1) / (na * ne).clamp_min(1e-12)
+        return (na > config.min_move) & (cos <= cos_max)
+
+    out["direction"] = bad_direction(a_l, s1 - s3) | bad_direction(a_r, s2 - s4)
+    lo = torch.as_tensor(ctx.workspace_lower, dtype=S.dtype)
+    hi = torch.as_tensor(ctx.workspace_upper, dtype=S.dtype)
+    if S_next is None:
+        moved = (
+            S.clone()
+            if S.shape[:-2] == A.shape[:-1]
+            else S.expand(*A.shape[:-1], *S.shape[-2:]).clone()
+        )
+        moved[..., idx["s1"], :] = s1n
+        moved[..., idx["s2"], :] = s2n
+        points = moved
+    else:
+        points = S_next
+    grippers = torch.stack([s1n, s2n], -2)
+    outside = ((points < lo) | (points > hi)).any(-1).any(-1)
+    # Grippers never go below the table top.
+    outside = outside | (grippers[..., 2] < 0.0).any(-1)
+    out["workspace"] = outside
+    if ctx.object_size is not None:
+        half = torch.as_tensor(ctx.object_size, dtype=S.dtype) / 2
+        margin = config.object_margin
+        inside = (
+            (grippers[..., 0].abs() < half[0] + margin)
+            & (grippers[..., 1].abs() < half[1] + margin)
+            & (grippers[..., 2] < 2 * half[2] + margin)
+        )
+        out["object"] = inside.any(-1)
+    else:
+        out["object"] = torch.zeros_like(out["bounds"])
+    return out
+
+
+def valid_actions(
+    S: torch.Tensor,
+    A: torch.Tensor,
+    config: SafetyConfig,
+    ctx: SafetyContext,
+    S_next: torch.Tensor | None = None,
+) -> torch.Tensor:
+    """(...) True where the action A is valid in state S (all rules hold)."""
+    bad = rule_violations(S, A, config, ctx, S_next)
+    out = torch.zeros_like(bad["bounds"])
+    for v in bad.values():
+        out = out | v
+    return ~out
+
+
+def valid_actions_np(
+    S, A, config: SafetyConfig, ctx: SafetyContext, S_next=None
+) -> np.ndarray:
+    t = torch.as_tensor
+    return valid_actions(
+        t(np.asarray(S, dtype=np.float64)),
+        t(np.asarray(A, dtype=np.float64)),
+        config,
+        ctx,
+        None if S_next is None else t(np.asarray(S_next, dtype=np.float64)),
+    ).numpy()
