@@ -168,6 +168,33 @@ def _collect(args) -> dict:
     )
 
 
+def _add_train(p):
+    p.add_argument("--data", type=Path, required=True, help="prior dataset (HDF5)")
+    p.add_argument("--out", type=Path, required=True, help="checkpoint directory")
+    p.add_argument("--epochs", type=int, default=20, help="epochs of f_D and f_I")
+    p.add_argument(
+        "--keypoint-epochs",
+        type=int,
+        default=None,
+        help="epochs of f_R (default: --epochs)",
+    )
+    p.add_argument("--seed", type=int, default=0)
+
+
+@command("train")(_add_train)
+def _train(args) -> dict:
+    from fabric_imitation.learning.train import TrainConfig, train_priors
+
+    config = TrainConfig(
+        epochs=args.epochs,
+        seed=args.seed,
+        keypoint_epochs=args.epochs
+        if args.keypoint_epochs is None
+        else args.keypoint_epochs,
+    )
+    return train_priors(data=args.data, out=args.out, config=config)
+
+
 def _add_bench_sim(p):
     p.add_argument(
         "--scenarios",

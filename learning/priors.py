@@ -1,0 +1,253 @@
+"""Trained priors as small batched predictors: `load_priors(path) -> Priors`
+with `keypoints(mask, depth)`, `forward(S, A)`, `inverse(S, S_next)`.
+
+States are (..., M, 3) in any frame whose z is height above the table (world
+or an object frame); f_D and f_I work in each state's canonical frame
+(learning/geometry.py), so the frame does not matter.
+"""
+
+import dataclasses as dc
+import json
+from pathlib import Path
+
+import numpy as np
+import torch
+from fabric_imitation.learning.errors import InputError
+from fabric_imitation.learning.geometry import (
+    PinholeCamera,
+    canonical_frame,
+    from_frame,
+    rotate_actions,
+    to_frame,
+)
+from fabric_imitation.learning.models import KeypointNet, KeypointNetConfig, Mlp
+
+CHECKPOINT_FORMAT = "fabric-imitation-priors"
+CHECKPOINT_VERSION = 1
+CHECKPOINT_FILE = "priors.pt"
+HEIGHT_SCALE = 4.0  # the height channel is metres * HEIGHT_SCALE
+
+
+@dc.dataclass
+class Normalizer:
+    mean: torch.Tensor
+    std: torch.Tensor
+
+    @classmethod
+    def fit(cls, x: torch.Tensor) -> "Normalizer":
+        return cls(x.mean(0), x.std(0).clamp_min(1e-4))
+
+    def encode(self, x: torch.Tensor) -> torch.Tensor:
+        return (x - self.mean) / self.std
+
+    def decode(self, y: torch.Tensor) -> torch.Tensor:
+        return y * self.std + self.mean
+
+    def state(self) -> dict:
+        return {"mean": self.mean, "std": self.std}
+
+
+def image_input(
+    camera: PinholeCamera, mask: torch.Tensor, depth: torch.Tensor
+) -> torch.Tensor:
+    """(B, 2, H, W) network input from masks (B, H, W) and depths (B, H, W)."""
+    on = (mask > 0).float()
+    height = camera.height_map(depth).clamp(0.0, 1.0) * on * HEIGHT_SCALE
+    return torch.stack([on, height], 1)
+
+
+def canonical_inputs(S: torch.Tensor):
+    origin, yaw = canonical_frame(S)
+    return to_frame(S, origin, yaw), origin, yaw
+
+
+class Priors:
+    """f_R, f_D, f_I with their normalisation and camera, ready to predict."""
+
+    def __init__(
+        self,
+        *,
+        config: dict,
+        f_R: KeypointNet,
+        f_D: Mlp,
+        f_I: Mlp,
+        norms: dict[str, Normalizer],
+        camera: PinholeCamera,
+    ):
+        self.config = config
+        self.f_R, self.f_D, self.f_I = f_R.eval(), f_D.eval(), f_I.eval()
+        self.norms = norms
+        self.camera = camera
+
+    @property
+    def num_keypoints(self) -> int:
+        return int(self.config["num_keypoints"])
+
+    @property
+    def image_size(self) -> tuple[int, int]:
+        return tuple(self.config["image_size"])
+
+    # --- predictions -------------------------------------------------------
+
+    @torch.no_grad()
+    def keypoint_pixels(self, mask, depth) -> torch.Tensor:
+        mask, depth = _batch_images(mask), _batch_images(depth)
+        return self.f_R(image_input(self.camera, mask, depth))
+
+    @torch.no_grad()
+    def keypoints(self, mask, depth) -> np.ndarray:
+        """World keypoints (B, M, 3) (or (M, 3) for one image) from fabric masks
+        and depth images (metres) of this camera."""
+        single = np.ndim(mask) == 2
+        mask_t, depth_t = _batch_images(mask), _batch_images(depth)
+        if tuple(mask_t.shape[-2:]) != self.image_size:
+            raise InputError(
+                f"images are {tuple(mask_t.shape[-2:])}, the priors "
+                f"were trained on {self.image_size}"
+            )
+        uv = self.f_R(image_input(self.camera, mask_t, depth_t))
+        p = self.camera.back_project(uv, depth_t, mask_t).numpy()
+        return p[0] if single else p
+
+    @torch.no_grad()
+    def forward(self, S, A) -> torch.Tensor:
+        """f_D: next states (..., M, 3) after actions (..., 6)."""
+        S = torch.as_tensor(S, dtype=torch.float32)
+        A = torch.as_tensor(A, dtype=torch.float32)
+        Sc, origin, yaw = canonical_inputs(S)
+        Ac = rotate_actions(A, -yaw)
+        x = torch.cat(
+            [
+                self.norms["state"].encode(Sc.flatten(-2)),
+                self.norms["action"].encode(Ac),
+            ],
+            -1,
+        )
+        delta = self.norms["delta"].decode(self.f_D(x)).reshape(Sc.shape)
+        return from_frame(Sc + delta, origin, yaw)
+
+    @torch.no_grad()
+    def inverse(self, S, S_next) -> torch.Tensor:
+        """f_I: actions (..., 6) that take S to S_next."""
+        S = torch.as_tensor(S, dtype=torch.float32)
+        S_next = torch.as_tensor(S_next, dtype=torch.float32)
+        Sc, origin, yaw = canonical_inputs(S)
+        Snc = to_frame(S_next, origin, yaw)
+        x = torch.cat(
+            [
+                self.norms["state"].encode(Sc.flatten(-2)),
+                self.norms["state"].encode(Snc.flatten(-2)),
+            ],
+            -1,
+        )
+        Ac = self.norms["action"].decode(self.f_I(x))
+        return rotate_actions(Ac, yaw)
+
+    # --- checkpoint --------------------------------------------------------
+
+    def save(self, directory: Path, *, extra: dict) -> Path:
+        directory = Path(directory)
+        directory.mkdir(parents=True, exist_ok=True)
+        blob = {
+            "format": CHECKPOINT_FORMAT,
+            "version": CHECKPOINT_VERSION,
+            "config": self.config,
+            "f_R": self.f_R.state_dict(),
+            "f_D": self.f_D.state_dict(),
+            "f_I": self.f_I.state_dict(),
+            "norms": {k: v.state() for k, v in self.norms.items()},
+            **extra,
+        }
+        path = directory / CHECKPOINT_FILE
+        tmp = path.with_name(path.name + ".partial")
+        torch.save(blob, tmp)
+        tmp.replace(path)
+        return path
+
+
+def _batch_images(x) -> torch.Tensor:
+    t = torch.as_tensor(np.asarray(x, dtype=np.float32))
+    return t[None] if t.ndim == 2 else t
+
+
+def build_priors(config: dict, camera: PinholeCamera, norms: dict) -> Priors:
+    m = int(config["num_keypoints"])
+    kp_config = KeypointNetConfig(**config["keypoint_net"])
+    if kp_config.num_keypoints != m:
+        raise InputError("checkpoint config disagrees on the number of keypoints")
+    return Priors(
+        config=config,
+        f_R=KeypointNet(kp_config),
+        f_D=Mlp(3 * m + 6, 3 * m),
+        f_I=Mlp(6 * m, 6),
+        norms=norms,
+        camera=camera,
+    )
+
+
+def load_priors(
+    path: Path | str,
+    *,
+    num_keypoints: int | None = None,
+    image_size: tuple[int, int] | None = None,
+    camera=None,
+) -> Priors:
+    """Loads priors from a checkpoint directory (or its priors.pt).
+
+    Args:
+        num_keypoints, image_size, camera: when given, the checkpoint must
+            match them (a CameraModel's intrinsics and pose).
+
+    Raises:
+        InputError: missing or corrupt file, another format, a mismatch.
+    """
+    path = Path(path)
+    file = path / CHECKPOINT_FILE if path.is_dir() else path
+    if not file.is_file():
+        raise InputError(f"priors checkpoint not found: {file}")
+    try:
+        blob = torch.load(file, map_location="cpu", weights_only=False)
+    except Exception as e:  # noqa: BLE001 (any unpickling failure is a bad file)
+        raise InputError(
+            f"priors checkpoint {file} is corrupt: {' '.join(str(e).split())[:150]}"
+        ) from None
+    if not isinstance(blob, dict) or blob.get("format") != CHECKPOINT_FORMAT:
+        raise InputError(f"{file} is not a {CHECKPOINT_FORMAT} checkpoint")
+    config = blob["config"]
+    if num_keypoints is not None and int(config["num_keypoints"]) != num_keypoints:
+        raise InputError(
+            f"priors {file} predict {config['num_keypoints']} keypoints, "
+            f"the scenario uses {num_keypoints}"
+        )
+    if image_size is not None and tuple(config["image_size"]) != tuple(image_size):
+        raise InputError(
+            f"priors {file} were trained on {tuple(config['image_size'])} "
+            f"images, the camera gives {tuple(image_size)}"
+        )
+    from fabric_imitation.learning.demo_io import CameraModel
+
+    stored = CameraModel.from_json(config["camera"])
+    if camera is not None and not stored.same_as(camera):
+        raise InputError(
+            f"priors {file} were trained with another camera "
+            "(intrinsics or pose differ)"
+        )
+    norms = {k: Normalizer(v["mean"], v["std"]) for k, v in blob["norms"].items()}
+    priors = build_priors(config, PinholeCamera.from_model(stored), norms)
+    try:
+        for name in ("f_R", "f_D", "f_I"):
+            getattr(priors, name).load_state_dict(blob[name])
+    except (RuntimeError, KeyError) as e:
+        raise InputError(
+            f"priors {file} do not fit the networks: {' '.join(str(e).split())[:150]}"
+        ) from None
+    priors.metadata = {
+        k: v for k, v in blob.items() if k not in ("f_R", "f_D", "f_I", "norms")
+    }
+    return priors
+
+
+def checkpoint_summary(priors: Priors) -> str:
+    return json.dumps(
+        {k: priors.metadata.get(k) for k in ("dataset_fingerprint", "metrics")}
+    )
