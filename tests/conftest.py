@@ -1,0 +1,15 @@
+import os
+
+import numpy as np
+import pytest
+
+# Tests run single-threaded and quietly; the machine has 2 cores.
+os.environ.setdefault("OMP_NUM_THREADS", "1")
+
+# A coarse cloth keeps physics tests to seconds.
+SMALL_CLOTH = "cloth: {resolution: [6, 6, 2]}\n"
+
+
+@pytest.fixture
+def rng():
+    return np.random.default_rng(0)
