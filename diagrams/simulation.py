@@ -162,6 +162,11 @@ class OpenLoopRun:
     def capture(self) -> Frame:
         return CaptureFrame(self.station, self.station_context)
 
+    def capture_positions(self) -> np.ndarray:
+        """Ground-truth cloth vertices (N, 3), without rendering."""
+        port = self.station.GetOutputPort(StationPorts.CLOTH_POSITIONS)
+        return np.array(port.Eval(self.station_context)).reshape(-1, 3)
+
     def advance_to(self, t: float) -> None:
         try:
             self.simulator.AdvanceTo(t)

@@ -1,0 +1,147 @@
+"""`fabric-imitate bench sim`: real-time factor of the cloth simulation per
+scenario, on one core, in two phases, with physical-correctness checks.
+
+Phase "flat": the cloth lies flat on the table, grippers holding still.
+Phase "draped": box / box_big after the scripted cover motion and release
+(cloth resting over the box), hang after the scripted hang (cloth on the
+plate), prior with the cloth hanging from the grippers 35 cm up.
+"""
+
+import json
+import os
+import platform
+import time
+from pathlib import Path
+
+import numpy as np
+from fabric_imitation.diagrams.demos import ScriptedDemoPlan
+from fabric_imitation.diagrams.simulation import OpenLoopRun
+from fabric_imitation.diagrams.success import TaskSuccess
+from fabric_imitation.learning.state import world_to_object
+from fabric_imitation.scenarios.loader import LoadScenario
+from fabric_imitation.scenarios.schema import Scenario, yaw_rad
+
+DEFAULT_SCENARIOS = ("prior", "box", "hang", "box_big")
+# A vertex may sink this far [m] into the table or the object (contact is
+# compliant; the slab is 4 mm thick) before the check fails.
+PENETRATION_TOLERANCE = 0.006
+# Upward vertex speed [m/s] that counts as "thrown".
+THROWN_SPEED = 1.0
+
+
+def _checks(
+    scenario: Scenario, samples: list[tuple[float, np.ndarray]], grippers_z: float
+) -> dict:
+    P = np.stack([p for _, p in samples])  # (T, N, 3)
+    t = np.array([s for s, _ in samples])
+    below = float(-P[..., 2].min())
+    out = {"deepest_below_table_mm": round(1000 * max(below, 0.0), 2)}
+    ok = below <= PENETRATION_TOLERANCE
+    if scenario.object.kind != "none":
+        pose = scenario.object.pose
+        p_O = world_to_object(P, np.array([pose[0], pose[1], yaw_rad(pose)]))
+        half = np.array(scenario.object.size) / 2
+        depth = np.minimum.reduce(
+            [
+                half[0] - np.abs(p_O[..., 0]),
+                half[1] - np.abs(p_O[..., 1]),
+                2 * half[2] - p_O[..., 2],
+                p_O[..., 2],
+            ]
+        )
+        inside = float(depth.max())
+        out["deepest_inside_object_mm"] = round(1000 * max(inside, 0.0), 2)
+        ok &= inside <= PENETRATION_TOLERANCE
+        top = scenario.object.size[2]
+    else:
+        top = 0.0
+    if len(t) > 1:
+        vz = np.diff(P[..., 2], axis=0) / np.diff(t)[:, None]
+        out["max_upward_speed"] = round(float(vz.max()), 3)
+        ok &= vz.max() <= THROWN_SPEED
+    ceiling = max(grippers_z, top) + 0.05
+    out["highest_vertex"] = round(float(P[..., 2].max()), 4)
+    ok &= P[..., 2].max() <= ceiling
+    out["physically_ok"] = bool(ok)
+    return out
+
+
+def _measure(run: OpenLoopRun, seconds: float, scenario: Scenario) -> dict:
+    """Advances `seconds`, timing only the physics (samples read between)."""
+    dt = scenario.plant_config.time_step
+    t0 = run.context.get_time()
+    samples = [(t0, run.capture_positions())]
+    wall = 0.0
+    n = int(round(seconds / 0.05))
+    for k in range(n):
+        start = time.perf_counter()
+        run.advance_to(t0 + (k + 1) * seconds / n)
+        wall += time.perf_counter() - start
+        samples.append((run.context.get_time(), run.capture_positions()))
+    grippers = run.capture().grippers_W
+    return {
+        "sim_seconds": round(seconds, 3),
+        "wall_seconds": round(wall, 3),
+        "realtime_factor": round(seconds / wall, 3),
+        "ms_per_step": round(1000 * wall / (seconds / dt), 2),
+        **_checks(scenario, samples, float(grippers[:, 2].max())),
+    }
+
+
+def BenchScenario(
+    name: str, *, flat_seconds: float = 1.0, draped_seconds: float = 1.5
+) -> dict:
+    scenario = LoadScenario(scenario_name=name)
+    flat_run = OpenLoopRun(scenario, actions=np.zeros((1, 6)), release_step=None)
+    flat = _measure(flat_run, flat_seconds, scenario)
+    if scenario.task == "prior":
+        lift = np.tile([0, 0, 0.03, 0, 0, 0.03], (12, 1))
+        run = OpenLoopRun(scenario, actions=lift, release_step=None)
+        run.run(capture_frames=False, settle=False)
+        draped = _measure(run, draped_seconds, scenario)
+    else:
+        plan = ScriptedDemoPlan(scenario)
+        run = OpenLoopRun(
+            scenario, actions=plan.actions, release_step=plan.release_step
+        )
+        run.run(capture_frames=False, settle=False)
+        run.advance_to(plan.release_step * scenario.motion.step_seconds + 0.1)
+        draped = _measure(run, draped_seconds, scenario)
+        report = TaskSuccess(
+            scenario, run.capture_positions(), run.station.handles.mesh.top_layer
+        )
+        draped["task_success"] = bool(report.success)
+        draped["physically_ok"] = draped["physically_ok"] and (
+            scenario.task != "hang" or report.success
+        )
+    return {
+        "scenario": name,
+        "cloth_vertices": len(flat_run.station.handles.mesh.vertices),
+        "time_step": scenario.plant_config.time_step,
+        "contact_approximation": scenario.plant_config.discrete_contact_approximation,
+        "contact_model": scenario.plant_config.contact_model,
+        "flat": flat,
+        "draped": draped,
+    }
+
+
+def BenchSim(
+    *, scenario_names=None, flat_seconds: float = 1.0, out: Path | None = None
+) -> dict:
+    """Runs BenchScenario for each scenario, pinned to one core."""
+    if hasattr(os, "sched_setaffinity"):
+        os.sched_setaffinity(0, {sorted(os.sched_getaffinity(0))[0]})
+    os.environ["OMP_NUM_THREADS"] = "1"
+    results = [
+        BenchScenario(n, flat_seconds=flat_seconds)
+        for n in (scenario_names or DEFAULT_SCENARIOS)
+    ]
+    summary = {
+        "benchmark": "sim",
+        "machine": {"cpu": platform.processor() or platform.machine(), "cores_used": 1},
+        "target_realtime_factor": 0.5,
+        "scenarios": results,
+    }
+    if out is not None:
+        Path(out).write_text(json.dumps(summary, indent=1))
+    return summary
