@@ -195,6 +195,48 @@ def _train(args) -> dict:
     return train_priors(data=args.data, out=args.out, config=config)
 
 
+def _add_imitate(p):
+    _scenario_flags(p, required=False)
+    p.set_defaults(scenario="box")
+    p.add_argument(
+        "--demo",
+        type=Path,
+        default=None,
+        help="demo directory (default: the shipped demo of the scenario)",
+    )
+    p.add_argument(
+        "--priors",
+        type=Path,
+        default=None,
+        help="priors checkpoint directory (default: the shipped priors)",
+    )
+    p.add_argument(
+        "--record",
+        type=Path,
+        default=None,
+        help="write a meshcat recording (HTML) here",
+    )
+    p.add_argument(
+        "--video", type=Path, default=None, help="write the camera's view (mp4) here"
+    )
+    p.add_argument("--seed", type=int, default=None, help="MPC sampling seed")
+
+
+@command("imitate")(_add_imitate)
+def _imitate(args) -> dict:
+    from fabric_imitation.diagrams.imitation import Imitate
+
+    return Imitate(
+        scenario=LoadScenarioFromArgs(args),
+        scenario_name=args.scenario,
+        demo_dir=args.demo,
+        priors_dir=args.priors,
+        record=args.record,
+        video=args.video,
+        seed=args.seed,
+    )
+
+
 def _add_bench_sim(p):
     p.add_argument(
         "--scenarios",

@@ -16,9 +16,10 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from fabric_imitation.diagrams.demo_record import StationCameraModel
 from fabric_imitation.diagrams.station import (
+    NUM_KEYPOINTS,
     SIDES,
+    CameraModelFromConfig,
     GraspCorners,
     MakeClothStation,
     StationPorts,
@@ -318,20 +319,14 @@ def Collect(
     seed = scenario.random_seed if seed is None else seed
     out = Path(out)
     scenario_yaml = DumpScenario(scenario)
-    collector_probe = None
-    camera = None
     metadata = {
         "scenario_name": scenario_name,
         "scenario_yaml": scenario_yaml,
         "seed": seed,
         "code_version": CodeVersion(),
     }
-    # The camera description goes into the metadata; it needs a station.
-    collector_probe = MakeClothStation(scenario)
-    camera = json.dumps(StationCameraModel(collector_probe).to_json())
-    metadata["camera"] = camera
-    metadata["num_keypoints"] = int(len(collector_probe.handles.keypoint_vertices))
-    del collector_probe
+    metadata["camera"] = json.dumps(CameraModelFromConfig(scenario.camera).to_json())
+    metadata["num_keypoints"] = NUM_KEYPOINTS
     wall0 = time.perf_counter()
     info = Consolidate(out, target=transitions, metadata=metadata)
     have = info.num_transitions if info else 0

@@ -451,6 +451,23 @@ def _add_camera(builder: DiagramBuilder, scenario: Scenario, scene_graph):
     return X_WCamera, color_camera.core().intrinsics()
 
 
+def CameraModelFromConfig(config):
+    """The project's CameraModel (intrinsics, X_WC) of a Drake CameraConfig."""
+    from fabric_imitation.learning.demo_io import CameraModel
+
+    color, _ = config.MakeCameras()
+    k = color.core().intrinsics()
+    return CameraModel(
+        width=k.width(),
+        height=k.height(),
+        fx=k.focal_x(),
+        fy=k.focal_y(),
+        cx=k.center_x(),
+        cy=k.center_y(),
+        X_WC=config.X_PB.GetDeterministicValue().GetAsMatrix4(),
+    )
+
+
 def AddReleaseMonitor(simulator: Simulator, station: Diagram) -> None:
     """Opens the station's grasps (switches the clip welds off) once its
     `released` output turns on. Chains any monitor already set."""

@@ -12,40 +12,41 @@ class KeypointNetConfig:
     num_keypoints: int = 8
     # Input images are average-pooled by this factor before the network.
     input_stride: int = 2
-    # Channel widths of the three encoder stages.
-    channels: tuple[int, int, int] = (16, 32, 48)
+    # Channel widths of the three encoder stages (each halves the resolution).
+    channels: tuple[int, int, int] = (16, 32, 64)
     # Softmax temperature of the spatial soft-argmax.
     temperature: float = 1.0
+
+
+def _block(cin: int, cout: int, stride: int = 1, dilation: int = 1) -> nn.Module:
+    return nn.Sequential(
+        nn.Conv2d(cin, cout, 3, stride, padding=dilation, dilation=dilation),
+        nn.BatchNorm2d(cout),
+        nn.ReLU(inplace=True),
+    )
 
 
 class KeypointNet(nn.Module):
     """f_R: fully convolutional, (mask, height) images -> M heatmaps -> pixel
     coordinates by a spatial soft-argmax (sub-pixel, differentiable).
 
-    Input (B, 2, H, W): channel 0 the fabric mask in {0, 1}, channel 1 the
-    height above the table (m) on the fabric, 0 elsewhere. Output (B, M, 2)
-    pixel coordinates (u, v) in the input image.
+    A small U-Net: three stride-2 stages (to 1/8 of the pooled input, the
+    last one dilated for context) and two decoder stages back to 1/2, where
+    the heatmaps live. Input (B, 2, H, W): channel 0 the fabric mask in
+    {0, 1}, channel 1 the height above the table (scaled) on the fabric, 0
+    elsewhere. Output (B, M, 2) pixel coordinates (u, v) in the input image.
     """
 
     def __init__(self, config: KeypointNetConfig):
         super().__init__()
         self.config = config
         c1, c2, c3 = config.channels
-
-        def block(cin, cout, stride=1, dilation=1):
-            return nn.Sequential(
-                nn.Conv2d(cin, cout, 3, stride, padding=dilation, dilation=dilation),
-                nn.BatchNorm2d(cout),
-                nn.ReLU(inplace=True),
-            )
-
-        self.enc1 = nn.Sequential(block(2, c1), block(c1, c1))
-        self.enc2 = nn.Sequential(block(c1, c2, 2), block(c2, c2))
-        self.enc3 = nn.Sequential(
-            block(c2, c3, 2), block(c3, c3, dilation=2), block(c3, c3, dilation=4)
-        )
-        self.dec2 = nn.Sequential(block(c3 + c2, c2), block(c2, c2))
-        self.head = nn.Conv2d(c2, config.num_keypoints, 1)
+        self.enc1 = nn.Sequential(_block(2, c1, 2), _block(c1, c1))
+        self.enc2 = nn.Sequential(_block(c1, c2, 2), _block(c2, c2))
+        self.enc3 = nn.Sequential(_block(c2, c3, 2), _block(c3, c3, dilation=2))
+        self.dec2 = _block(c3 + c2, c2)
+        self.dec1 = nn.Sequential(_block(c2 + c1, c1), _block(c1, c1))
+        self.head = nn.Conv2d(c1, config.num_keypoints, 1)
 
     def heatmaps(self, x: torch.Tensor) -> torch.Tensor:
         s = self.config.input_stride
@@ -54,8 +55,14 @@ class KeypointNet(nn.Module):
         e1 = self.enc1(x)
         e2 = self.enc2(e1)
         e3 = self.enc3(e2)
-        up = F.interpolate(e3, size=e2.shape[-2:], mode="bilinear", align_corners=False)
-        return self.head(self.dec2(torch.cat([up, e2], 1)))
+
+        def up(a, like):
+            return F.interpolate(
+                a, size=like.shape[-2:], mode="bilinear", align_corners=False
+            )
+
+        d2 = self.dec2(torch.cat([up(e3, e2), e2], 1))
+        return self.head(self.dec1(torch.cat([up(d2, e1), e1], 1)))
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         H, W = x.shape[-2:]

@@ -51,6 +51,9 @@ class SafetyContext:
     # The task object as an axis-aligned box in the states' frame (the object
     # frame O: centred at the origin in x, y, from z = 0 up), or None.
     object_size: np.ndarray | None = None
+    # Pose [x, y, yaw_rad] of the states' frame in world, where the workspace
+    # box is defined (None: the states are in world).
+    frame_pose: np.ndarray | None = None
 
 
 RULES = ("bounds", "distance", "direction", "workspace", "object")
@@ -102,6 +105,11 @@ def rule_violations(
     else:
         points = S_next
     grippers = torch.stack([s1n, s2n], -2)
+    if ctx.frame_pose is not None:
+        x, y, yaw = (float(v) for v in ctx.frame_pose)
+        c, s = math.cos(yaw), math.sin(yaw)
+        R = torch.tensor([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]], dtype=S.dtype)
+        points = points @ R.T + torch.tensor([x, y, 0.0], dtype=S.dtype)
     outside = ((points < lo) | (points > hi)).any(-1).any(-1)
     # Grippers never go below the table top.
     outside = outside | (grippers[..., 2] < 0.0).any(-1)

@@ -20,12 +20,12 @@ class GripperTargetIntegrator(LeafSystem):
     positions with `SetInitialPositions(context, p_left, p_right)`.
     """
 
-    def __init__(self, *, step_seconds: float):
+    def __init__(self, *, step_seconds: float, offset: float = 0.0):
         super().__init__()
         self._dt = step_seconds
         self._action = self.DeclareVectorInputPort("action", 6)
         self._state = self.DeclareDiscreteState(13)
-        self.DeclarePeriodicDiscreteUpdateEvent(step_seconds, 0.0, self._latch)
+        self.DeclarePeriodicDiscreteUpdateEvent(step_seconds, offset, self._latch)
         self.DeclareVectorOutputPort(
             "left.ee_target", 3, lambda c, o: o.SetFromVector(self._target(c)[:3])
         )

@@ -1,0 +1,200 @@
+"""Demonstration learning (paper Section IV-C; DESIGN.md section 6): the
+state-alignment reward R_E = J - w_P D_P - w_N D_N and the termination
+classifier, built from one demo's states S_E^1..T in the object frame.
+
+Indices are 0-based here: J in 0..T-1, the subgoal is S_E[min(J + 1, T - 1)],
+the final state S_E[T - 1].
+"""
+
+import dataclasses as dc
+import math
+import time
+
+import numpy as np
+import torch
+from fabric_imitation.learning.models import Mlp
+from fabric_imitation.learning.polygon import iou
+
+
+@dc.dataclass
+class RewardConfig:
+    # Weight of the positive distance D_P to the subgoal (per metre).
+    w_p: float = 10.0
+    # Weight of rotation [rad] against translation [m] inside D_P.
+    w_r: float = 0.1
+    # Weight of the negative (overshoot) distance D_N.
+    w_n: float = 10.0
+    # Termination: IoU with the last demo state above this, and J = T - 1.
+    tau_i: float = 0.75
+    # f_A training: steps, batch, learning rate, source-state jitter.
+    registration_steps: int = 1500
+    registration_batch: int = 256
+    registration_lr: float = 2e-3
+    source_shift: float = 0.15  # [m] random shift of prior states
+    source_yaw_deg: float = 60.0  # random yaw of prior states
+    seed: int = 0
+
+    def __post_init__(self):
+        for name in ("w_p", "w_r", "w_n"):
+            if getattr(self, name) < 0:
+                raise ValueError(f"reward.{name} must be non-negative")
+        if not 0 < self.tau_i <= 1:
+            raise ValueError(f"reward.tau_i must be in (0, 1], got {self.tau_i}")
+
+
+def euler_to_matrix(e: torch.Tensor) -> torch.Tensor:
+    """Rotation matrices (..., 3, 3) from roll-pitch-yaw angles (..., 3)."""
+    r, p, y = e[..., 0], e[..., 1], e[..., 2]
+    cr, sr, cp, sp, cy, sy = r.cos(), r.sin(), p.cos(), p.sin(), y.cos(), y.sin()
+    return torch.stack(
+        [
+            torch.stack([cy * cp, cy * sp * sr - sy * cr, cy * sp * cr + sy * sr], -1),
+            torch.stack([sy * cp, sy * sp * sr + cy * cr, sy * sp * cr - cy * sr], -1),
+            torch.stack([-sp, cp * sr, cp * cr], -1),
+        ],
+        -2,
+    )
+
+
+class Registration:
+    """f_A(S, S_E) -> (R as Euler angles, T) with R S + T ~ S_E (MLP)."""
+
+    def __init__(self, num_keypoints: int, scale: float = 0.2):
+        self.net = Mlp(6 * num_keypoints, 6)
+        self.scale = scale  # metres: states are divided by it at the input
+
+    def __call__(self, S: torch.Tensor, S_E: torch.Tensor):
+        x = torch.cat([S.flatten(-2), S_E.flatten(-2)], -1) / self.scale
+        out = self.net(x)
+        return out[..., :3], out[..., 3:] * self.scale
+
+    def align(self, S, S_E):
+        e, T = self(S, S_E)
+        return S @ euler_to_matrix(e).transpose(-1, -2) + T[..., None, :], e, T
+
+    def fit(self, sources: torch.Tensor, targets: torch.Tensor, cfg: RewardConfig):
+        """Trains on random (source, target) pairs, minimising the alignment
+        error |R S + T - S_E|^2."""
+        gen = torch.Generator().manual_seed(cfg.seed)
+        opt = torch.optim.Adam(self.net.parameters(), lr=cfg.registration_lr)
+        sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, cfg.registration_steps)
+        losses = []
+        for _ in range(cfg.registration_steps):
+            i = torch.randint(len(sources), (cfg.registration_batch,), generator=gen)
+            j = torch.randint(len(targets), (cfg.registration_batch,), generator=gen)
+            aligned, _, _ = self.align(sources[i], targets[j])
+            loss = ((aligned - targets[j]) ** 2).sum(-1).mean()
+            opt.zero_grad()
+            loss.backward()
+            opt.step()
+            sched.step()
+            losses.append(loss.item())
+        self.net.eval()
+        return losses
+
+
+def jitter_states(
+    S: torch.Tensor, around: torch.Tensor, cfg: RewardConfig, gen: torch.Generator
+) -> torch.Tensor:
+    """Prior states moved to random planar poses around the demo's centroid, so
+    the registration net sees sources where deployment states will be."""
+    n = len(S)
+    yaw = (torch.rand(n, generator=gen) * 2 - 1) * math.radians(cfg.source_yaw_deg)
+    c, s = yaw.cos(), yaw.sin()
+    z, o = torch.zeros_like(c), torch.ones_like(c)
+    R = torch.stack(
+        [
+            torch.stack([c, -s, z], -1),
+            torch.stack([s, c, z], -1),
+            torch.stack([z, z, o], -1),
+        ],
+        -2,
+    )
+    centre = S[..., :2].mean(-2, keepdim=True)
+    flat = torch.cat([centre, torch.zeros_like(centre[..., :1])], -1)
+    shift = (torch.rand(n, 1, 2, generator=gen) * 2 - 1) * cfg.source_shift
+    target = torch.cat([around[:2] + shift, torch.zeros(n, 1, 1)], -1)
+    return (S - flat) @ R.transpose(-1, -2) + target
+
+
+class DemoModel:
+    """The demo's states and the reward/termination built on them. Batched:
+    every method takes states (..., M, 3) in the object frame."""
+
+    def __init__(
+        self, states: np.ndarray, registration: Registration, config: RewardConfig
+    ):
+        self.states = torch.as_tensor(np.asarray(states), dtype=torch.float32)
+        self.T = len(self.states)
+        self.f_A = registration
+        self.config = config
+        self.polygons = self.states[..., :2]
+        self.centres = self.polygons.mean(-2)
+
+    def similarity(self, S: torch.Tensor, window: tuple[int, int] | None = None):
+        """IoU (..., W) of S with demo states lo..hi-1 (default all)."""
+        lo, hi = window or (0, self.T)
+        return iou(S[..., None, :, :2], self.polygons[lo:hi])
+
+    def progress(self, S: torch.Tensor, window: tuple[int, int] | None = None):
+        """J (...): index of the most similar demo state by IoU of the top-down
+        keypoint polygons; by nearest polygon centre where S overlaps none."""
+        lo, hi = window or (0, self.T)
+        sim = self.similarity(S, (lo, hi))
+        best_iou, j = sim.max(-1)
+        centre = S[..., :2].mean(-2)
+        dist = (centre[..., None, :] - self.centres[lo:hi]).norm(dim=-1)
+        j = torch.where(best_iou > 0, j, dist.argmin(-1))
+        return j + lo, best_iou
+
+    @torch.no_grad()
+    def reward(self, S: torch.Tensor, window: tuple[int, int] | None = None):
+        """R_E (...), and J (...)."""
+        S = torch.as_tensor(S, dtype=torch.float32)
+        cfg = self.config
+        J, _ = self.progress(S, window)
+        sub = self.states[(J + 1).clamp(max=self.T - 1)]
+        e, T = self.f_A(S, sub)
+        d_p = T.norm(dim=-1) + cfg.w_r * e.norm(dim=-1)
+        last = self.states[-1]
+        prev = self.states[max(self.T - 2, 0)]
+        d_last = (S - last).norm(dim=-1).mean(-1)
+        d_prev = (S - prev).norm(dim=-1).mean(-1)
+        d_n = torch.where(
+            (J >= self.T - 2) & (d_last < d_prev), d_last, torch.zeros_like(d_last)
+        )
+        return J.float() - cfg.w_p * d_p - cfg.w_n * d_n, J
+
+    @torch.no_grad()
+    def done(self, S: torch.Tensor) -> torch.Tensor:
+        """Termination classifier: IoU with S_E^T above tau_I and J = T - 1."""
+        S = torch.as_tensor(S, dtype=torch.float32)
+        J, _ = self.progress(S)
+        last_iou = iou(S[..., :2], self.polygons[-1])
+        return (last_iou > self.config.tau_i) & (J == self.T - 1)
+
+
+def learn_from_demo(
+    demo_states: np.ndarray,
+    prior_states: np.ndarray,
+    config: RewardConfig | None = None,
+) -> tuple[DemoModel, dict]:
+    """Builds the demo model: trains f_A with prior states (moved around the
+    demo) as sources and the demo's states as targets. Returns the model and
+    a summary (training time, final alignment error)."""
+    cfg = config or RewardConfig()
+    torch.manual_seed(cfg.seed)
+    t0 = time.perf_counter()
+    targets = torch.as_tensor(np.asarray(demo_states), dtype=torch.float32)
+    gen = torch.Generator().manual_seed(cfg.seed)
+    around = targets[..., :2].reshape(-1, 2).mean(0)
+    sources = jitter_states(
+        torch.as_tensor(np.asarray(prior_states), dtype=torch.float32), around, cfg, gen
+    )
+    f_A = Registration(targets.shape[-2])
+    losses = f_A.fit(sources, targets, cfg)
+    model = DemoModel(targets.numpy(), f_A, cfg)
+    return model, {
+        "registration_seconds": round(time.perf_counter() - t0, 2),
+        "registration_final_loss": round(float(np.mean(losses[-50:])), 6),
+    }

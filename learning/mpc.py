@@ -1,0 +1,179 @@
+"""State-alignment-driven sampling MPC (paper's Algorithm 1; DESIGN.md
+section 7), batched in torch. Works in the task object's frame.
+
+Each control step, from the current state S_t:
+1. action prior: roll h steps through f_I and f_D, each aiming at the subgoal
+   S_E[J + 1] of the imagined state;
+2. sample N sequences X = X_prior + eps, eps ~ N(mu, diag Sigma); roll out
+   with f_D; score sum_k gamma^(k-1) R_E(S_t+k) and count rule violations;
+3. keep the feasible ones, move (mu, Sigma) towards their top elites with
+   rate beta; stop when max std < tau_conv and a feasible one exists, or at
+   the iteration cap / time budget;
+4. return the first action of the best feasible sequence.
+"""
+
+import dataclasses as dc
+import time
+from typing import Protocol
+
+import torch
+from fabric_imitation.learning.demo_learning import DemoModel
+from fabric_imitation.learning.safety import SafetyConfig, SafetyContext, valid_actions
+
+
+class Dynamics(Protocol):
+    def forward(self, S: torch.Tensor, A: torch.Tensor) -> torch.Tensor: ...
+
+    def inverse(self, S: torch.Tensor, S_next: torch.Tensor) -> torch.Tensor: ...
+
+
+@dc.dataclass
+class MpcConfig:
+    num_samples: int = 500  # N
+    horizon: int = 5  # h
+    elites: int = 50
+    beta: float = 0.7  # update rate of (mu, Sigma)
+    sigma0: float = 0.01  # initial noise std [m]
+    tau_conv: float = 0.002  # converged when max std is below [m]
+    max_iterations: int = 4
+    time_budget: float = 0.09  # [s] no new iteration starts after this
+    gamma: float = 0.9
+    # Ablations (paper Table I): no_mpc applies f_I's action; no_prior samples
+    # around zero; no_cost ignores the constraint cost.
+    use_mpc: bool = True
+    use_prior: bool = True
+    use_cost: bool = True
+    # Episode step cap as a multiple of the demo length (plus 5).
+    step_cap_factor: float = 2.0
+
+    def __post_init__(self):
+        if self.num_samples < 1 or self.horizon < 1:
+            raise ValueError("mpc.num_samples and mpc.horizon must be positive")
+        if not 1 <= self.elites <= self.num_samples:
+            raise ValueError(f"mpc.elites must be in 1..num_samples, got {self.elites}")
+        if not 0 < self.beta <= 1:
+            raise ValueError(f"mpc.beta must be in (0, 1], got {self.beta}")
+
+
+@dc.dataclass
+class MpcResult:
+    action: torch.Tensor  # (6,) in the object frame
+    feasible: bool
+    iterations: int
+    reward: float
+    progress: int
+    seconds: float
+
+
+class Mpc:
+    def __init__(
+        self,
+        *,
+        dynamics: Dynamics,
+        demo: DemoModel,
+        safety: SafetyConfig,
+        safety_ctx: SafetyContext,
+        config: MpcConfig,
+    ):
+        self.dynamics = dynamics
+        self.demo = demo
+        self.safety = safety
+        self.ctx = safety_ctx
+        self.config = config
+
+    def _window(self, J: int) -> tuple[int, int]:
+        return max(0, J - 1), min(self.demo.T, J + self.config.horizon + 2)
+
+    def _clip(self, A: torch.Tensor) -> torch.Tensor:
+        b = self.safety.max_step
+        return A.clamp(-b, b)
+
+    @torch.no_grad()
+    def action_prior(self, S: torch.Tensor) -> torch.Tensor:
+        """(h, 6): iterate f_I towards the subgoal of the imagined state, f_D."""
+        out = []
+        s = S[None]
+        for _ in range(self.config.horizon):
+            J, _ = self.demo.progress(s)
+            goal = self.demo.states[(J + 1).clamp(max=self.demo.T - 1)]
+            a = self._clip(self.dynamics.inverse(s, goal))
+            out.append(a[0])
+            s = self.dynamics.forward(s, a)
+        return torch.stack(out)
+
+    @torch.no_grad()
+    def rollout(self, S: torch.Tensor, X: torch.Tensor, window):
+        """Discounted rewards (N,) and violation counts (N,) of sequences X."""
+        cfg = self.config
+        s = S.expand(len(X), *S.shape)
+        total = torch.zeros(len(X))
+        cost = torch.zeros(len(X))
+        for k in range(cfg.horizon):
+            a = X[:, k]
+            s_next = self.dynamics.forward(s, a)
+            ok = valid_actions(s, a, self.safety, self.ctx, S_next=s_next)
+            cost += (~ok).float()
+            r, _ = self.demo.reward(s_next, window)
+            total += cfg.gamma**k * r
+            s = s_next
+        return total, cost
+
+    @torch.no_grad()
+    def solve(self, S, *, step: int = 0, seed: int = 0) -> MpcResult:
+        """One control step from state S (M, 3)."""
+        cfg = self.config
+        t0 = time.perf_counter()
+        S = torch.as_tensor(S, dtype=torch.float32)
+        J0, _ = self.demo.progress(S[None])
+        J0 = int(J0[0])
+        window = self._window(J0)
+        prior = (
+            self.action_prior(S)
+            if cfg.use_prior or not cfg.use_mpc
+            else (torch.zeros(cfg.horizon, 6))
+        )
+        if not cfg.use_mpc:
+            a = prior[0]
+            ok = bool(
+                valid_actions(
+                    S, a, self.safety, self.ctx, S_next=self.dynamics.forward(S, a)
+                )
+            )
+            return MpcResult(
+                a, ok or not cfg.use_cost, 0, float("nan"), J0, time.perf_counter() - t0
+            )
+        gen = torch.Generator().manual_seed(seed * 100003 + step)
+        mu = torch.zeros(cfg.horizon, 6)
+        var = torch.full((cfg.horizon, 6), cfg.sigma0**2)
+        best_r, best_a = -float("inf"), None
+        iterations = 0
+        while iterations < cfg.max_iterations:
+            iterations += 1
+            eps = mu + var.sqrt() * torch.randn(
+                cfg.num_samples, cfg.horizon, 6, generator=gen
+            )
+            eps[0] = mu  # the mean itself is always a candidate
+            X = self._clip(prior + eps)
+            eps = X - prior
+            reward, cost = self.rollout(S, X, window)
+            feasible = cost == 0 if cfg.use_cost else torch.ones_like(cost, dtype=bool)
+            if feasible.any():
+                r = torch.where(
+                    feasible, reward, torch.full_like(reward, -float("inf"))
+                )
+                i = int(r.argmax())
+                if r[i] > best_r:
+                    best_r, best_a = float(r[i]), X[i, 0].clone()
+                k = min(cfg.elites, int(feasible.sum()))
+                elite = eps[r.topk(k).indices]
+                mu = (1 - cfg.beta) * mu + cfg.beta * elite.mean(0)
+                var = (1 - cfg.beta) * var + cfg.beta * elite.var(0, unbiased=False)
+                if var.sqrt().max() < cfg.tau_conv:
+                    break
+            if time.perf_counter() - t0 > cfg.time_budget:
+                break
+        feasible = best_a is not None
+        action = best_a if feasible else torch.zeros(6)
+        return MpcResult(
+            action, feasible, iterations, best_r, J0, time.perf_counter() - t0
+        )
