@@ -106,17 +106,19 @@ class Mpc:
         """Discounted rewards (N,) and violation counts (N,) of sequences X."""
         cfg = self.config
         s = S.expand(len(X), *S.shape)
-        total = torch.zeros(len(X))
         cost = torch.zeros(len(X))
+        visited = []
         for k in range(cfg.horizon):
             a = X[:, k]
             s_next = self.dynamics.forward(s, a)
             ok = valid_actions(s, a, self.safety, self.ctx, S_next=s_next)
             cost += (~ok).float()
-            r, _ = self.demo.reward(s_next, window)
-            total += cfg.gamma**k * r
+            visited.append(s_next)
             s = s_next
-        return total, cost
+        # One batched reward call for all h * N predicted states.
+        r, _ = self.demo.reward(torch.stack(visited), window)  # (h, N)
+        discount = cfg.gamma ** torch.arange(cfg.horizon, dtype=r.dtype)
+        return (discount[:, None] * r).sum(0), cost
 
     @torch.no_grad()
     def solve(self, S, *, step: int = 0, seed: int = 0) -> MpcResult:

@@ -166,7 +166,7 @@ class Priors:
 
 
 def _batch_images(x) -> torch.Tensor:
-    t = torch.as_tensor(np.asarray(x, dtype=np.float32))
+    t = torch.as_tensor(np.array(x, dtype=np.float32))
     return t[None] if t.ndim == 2 else t
 
 
@@ -242,8 +242,11 @@ def load_priors(
             f"priors {file} do not fit the networks: {' '.join(str(e).split())[:150]}"
         ) from None
     priors.metadata = {
-        k: v for k, v in blob.items() if k not in ("f_R", "f_D", "f_I", "norms")
+        k: v
+        for k, v in blob.items()
+        if k not in ("f_R", "f_D", "f_I", "norms", "prior_states")
     }
+    priors.prior_states = blob.get("prior_states")
     return priors
 
 

@@ -108,8 +108,10 @@ def rule_violations(
     if ctx.frame_pose is not None:
         x, y, yaw = (float(v) for v in ctx.frame_pose)
         c, s = math.cos(yaw), math.sin(yaw)
-        R = torch.tensor([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]], dtype=S.dtype)
-        points = points @ R.T + torch.tensor([x, y, 0.0], dtype=S.dtype)
+        R = torch.tensor(
+            [[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]], dtype=points.dtype
+        )
+        points = points @ R.T + torch.tensor([x, y, 0.0], dtype=points.dtype)
     outside = ((points < lo) | (points > hi)).any(-1).any(-1)
     # Grippers never go below the table top.
     outside = outside | (grippers[..., 2] < 0.0).any(-1)

@@ -308,9 +308,13 @@ def train_priors(
     metrics["train_transitions"] = int(len(tr))
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
+    pick = np.random.default_rng(cfg.seed).choice(
+        tr, size=min(PRIOR_STATES_KEPT, len(tr)), replace=False
+    )
     priors.save(
         out,
         extra={
+            "prior_states": torch.as_tensor(ds.arrays["keypoints"][np.sort(pick)]),
             "dataset_fingerprint": ds.fingerprint,
             "dataset_path": str(data),
             "metrics": metrics,
