@@ -150,7 +150,7 @@ def valid_actions_np(
 ) -> np.ndarray:
     t = torch.as_tensor
     return valid_actions(
-        t(np.asarray(S, dtype=np.float64)),
+        t(np.array(S, dtype=np.float64)),
         t(np.asarray(A, dtype=np.float64)),
         config,
         ctx,

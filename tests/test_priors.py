@@ -1,0 +1,239 @@
+"""Prior collection (determinism, resume after SIGKILL, Ray), dataset checks,
+training, checkpoints. Collection runs on a coarse cloth with short episodes."""
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+
+import h5py
+import numpy as np
+import pytest
+import torch
+from fabric_imitation.diagrams.collect import Collect
+from fabric_imitation.learning.dataset import LoadDataset, ShardEpisodes
+from fabric_imitation.learning.errors import InputError
+from fabric_imitation.learning.priors import load_priors
+from fabric_imitation.learning.train import TrainConfig, _split, train_priors
+from fabric_imitation.scenarios.loader import LoadScenario
+
+TINY = (
+    "cloth: {resolution: [5, 5, 2]}\n"
+    "collection: {episode_length: 4, max_warmup_steps: 1}\n"
+)
+
+
+def tiny_scenario():
+    return LoadScenario(scenario_name="prior", scenario_text=TINY)
+
+
+def collect(path, n, workers=1, executor="local"):
+    return Collect(
+        scenario=tiny_scenario(),
+        scenario_name="prior",
+        transitions=n,
+        out=path,
+        workers=workers,
+        executor=executor,
+        show_progress=False,
+    )
+
+
+@pytest.fixture(scope="session")
+def tiny_dataset(tmp_path_factory):
+    path = tmp_path_factory.mktemp("data") / "one.h5"
+    summary = collect(path, 12, workers=1)
+    assert summary["transitions"] == 12 and summary["complete"]
+    return path
+
+
+def _arrays(path):
+    with h5py.File(path, "r") as f:
+        return {k: f[k][:] for k in f}
+
+
+def test_two_workers_collect_the_same_data_as_one(tiny_dataset, tmp_path):
+    two = tmp_path / "two.h5"
+    collect(two, 12, workers=2)
+    a, b = _arrays(tiny_dataset), _arrays(two)
+    assert a.keys() == b.keys()
+    for k in a:
+        np.testing.assert_array_equal(a[k], b[k], err_msg=k)
+
+
+def test_dataset_holds_what_a_transition_needs(tiny_dataset):
+    ds = LoadDataset(tiny_dataset)
+    assert len(ds) == 12
+    assert ds.arrays["mask"].shape == (12, 160, 160)
+    assert (
+        ds.arrays["keypoints"].shape == ds.arrays["keypoints_next"].shape == (12, 8, 3)
+    )
+    assert np.abs(ds.arrays["action"]).max() <= 0.03 + 1e-6
+    for key in ("scenario_yaml", "seed", "code_version", "camera", "fingerprint"):
+        assert key in ds.attrs
+    # Consecutive transitions of an episode chain: S' of one is S of the next.
+    e, s = ds.arrays["episode"], ds.arrays["step"]
+    same = (e[1:] == e[:-1]) & (s[1:] == s[:-1] + 1)
+    np.testing.assert_allclose(
+        ds.arrays["keypoints_next"][:-1][same], ds.arrays["keypoints"][1:][same]
+    )
+
+
+def test_collection_killed_with_sigkill_resumes_to_exactly_n(tiny_dataset, tmp_path):
+    out = tmp_path / "killed.h5"
+    cmd = [
+        sys.executable,
+        "-m",
+        "fabric_imitation.diagrams.cli",
+        "collect",
+        "--scenario",
+        "prior",
+        "--scenario_text",
+        TINY,
+        "--transitions",
+        "12",
+        "--out",
+        str(out),
+        "--workers",
+        "1",
+    ]
+    proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    deadline = time.time() + 120
+    while time.time() < deadline and not ShardEpisodes(out):
+        time.sleep(0.2)
+    time.sleep(0.3)
+    os.kill(proc.pid, signal.SIGKILL)
+    proc.wait()
+    assert not out.exists() or not LoadDataset(out).attrs["complete"]
+    result = subprocess.run(
+        cmd + ["--json"], capture_output=True, text=True, timeout=300
+    )
+    assert result.returncode == 0, result.stderr
+    summary = json.loads(result.stdout)
+    assert summary["transitions"] == 12 and summary["resumed"]
+    a, b = _arrays(tiny_dataset), _arrays(out)
+    pairs = set(zip(b["episode"].tolist(), b["step"].tolist(), strict=True))
+    assert len(pairs) == 12  # unique
+    for k in a:
+        np.testing.assert_array_equal(a[k], b[k], err_msg=k)
+
+
+def test_ray_executor_collects_the_same_data(tiny_dataset, tmp_path):
+    ray = pytest.importorskip("ray")
+    ray.init(num_cpus=2, include_dashboard=False, log_to_driver=False)
+    try:
+        out = tmp_path / "ray.h5"
+        collect(out, 12, workers=2, executor="ray")
+    finally:
+        ray.shutdown()
+    a, b = _arrays(tiny_dataset), _arrays(out)
+    for k in a:
+        np.testing.assert_array_equal(a[k], b[k], err_msg=k)
+
+
+def test_bad_datasets_are_reported(tiny_dataset, tmp_path):
+    with pytest.raises(InputError, match="not found"):
+        LoadDataset(tmp_path / "none.h5")
+    truncated = tmp_path / "truncated.h5"
+    truncated.write_bytes(tiny_dataset.read_bytes()[:5000])
+    with pytest.raises(InputError, match="corrupt or truncated"):
+        LoadDataset(truncated)
+    nan = tmp_path / "nan.h5"
+    nan.write_bytes(tiny_dataset.read_bytes())
+    with h5py.File(nan, "r+") as f:
+        f["action"][3] = np.nan
+    with pytest.raises(InputError, match="NaN or inf in action of transition 3"):
+        LoadDataset(nan)
+    empty = tmp_path / "empty.h5"
+    empty.write_bytes(tiny_dataset.read_bytes())
+    with h5py.File(empty, "r+") as f:
+        for k in list(f):
+            f[k].resize(0, axis=0)
+    with pytest.raises(InputError, match="empty"):
+        LoadDataset(empty)
+    # Resuming into a dataset of another scenario is refused.
+    other = LoadScenario(scenario_name="prior", scenario_text=TINY + "random_seed: 3\n")
+    with pytest.raises(InputError, match="another"):
+        Collect(
+            scenario=other,
+            scenario_name="prior",
+            transitions=20,
+            out=tiny_dataset,
+            show_progress=False,
+        )
+
+
+@pytest.fixture(scope="session")
+def tiny_priors(tiny_dataset, tmp_path_factory):
+    out = tmp_path_factory.mktemp("priors")
+    summary = train_priors(
+        data=tiny_dataset,
+        out=out,
+        progress=False,
+        config=TrainConfig(epochs=60, keypoint_epochs=3, holdout_fraction=0.2),
+    )
+    return out, summary
+
+
+def test_training_overfits_a_tiny_dataset(tiny_dataset, tmp_path):
+    out = tmp_path / "p"
+    train_priors(
+        data=tiny_dataset,
+        out=out,
+        progress=False,
+        config=TrainConfig(epochs=1500, keypoint_epochs=0, holdout_fraction=0.1),
+    )
+    priors = load_priors(out)
+    ds = LoadDataset(tiny_dataset, images=False)
+    train_idx, _ = _split(ds, 0.1, 0)  # the transitions it was trained on
+    S, Sn, A = (
+        torch.as_tensor(ds.arrays[k][train_idx])
+        for k in ("keypoints", "keypoints_next", "action")
+    )
+    fd = (priors.forward(S, A) - Sn).norm(dim=-1).mean()
+    still = (S - Sn).norm(dim=-1).mean()
+    assert fd < 0.25 * still
+    fi = (priors.inverse(S, Sn) - A).abs().mean()
+    assert fi < 0.25 * A.abs().mean()
+    assert (out / "curves.png").stat().st_size > 0
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert {"f_D_ratio", "f_I_ratio", "keypoint_error_mm"} <= metrics.keys()
+
+
+def test_checkpoint_round_trip_is_exact(tiny_priors, tiny_dataset):
+    out, _ = tiny_priors
+    a, b = load_priors(out), load_priors(out / "priors.pt")
+    ds = LoadDataset(tiny_dataset)
+    S, A = ds.arrays["keypoints"][:5], ds.arrays["action"][:5]
+    torch.testing.assert_close(a.forward(S, A), b.forward(S, A), rtol=0, atol=0)
+    torch.testing.assert_close(a.inverse(S, S), b.inverse(S, S), rtol=0, atol=0)
+    from fabric_imitation.learning.dataset import DecodeDepth
+
+    depth = DecodeDepth(ds.arrays["depth"][:3])
+    np.testing.assert_array_equal(
+        a.keypoints(ds.arrays["mask"][:3], depth),
+        b.keypoints(ds.arrays["mask"][:3], depth),
+    )
+    assert a.prior_states.shape[1:] == (8, 3)
+
+
+def test_mismatched_checkpoints_raise(tiny_priors, tmp_path):
+    out, _ = tiny_priors
+    with pytest.raises(InputError, match="predict 8 keypoints, the scenario uses 12"):
+        load_priors(out, num_keypoints=12)
+    with pytest.raises(InputError, match=r"\(120, 160\)"):
+        load_priors(out, image_size=(120, 160))
+    scenario = LoadScenario(
+        scenario_name="box",
+        scenario_text="camera: {width: 160, height: 160, focal: !FovDegrees {y: 40.0}}",
+    )
+    from fabric_imitation.diagrams.station import CameraModelFromConfig
+
+    with pytest.raises(InputError, match="another camera"):
+        load_priors(out, camera=CameraModelFromConfig(scenario.camera))
+    bad = tmp_path / "priors.pt"
+    bad.write_bytes(b"not a checkpoint")
+    with pytest.raises(InputError, match="corrupt"):
+        load_priors(bad)

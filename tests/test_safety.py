@@ -1,0 +1,107 @@
+"""Each rule of the safe action set on hand-built states (DESIGN.md section 4)."""
+
+import numpy as np
+import pytest
+from fabric_imitation.learning.safety import (
+    SafetyConfig,
+    SafetyContext,
+    rule_violations,
+    valid_actions_np,
+)
+
+L = 0.30
+
+
+def flat_state():
+    """8 keypoints of a flat 30 x 30 cloth, grasped edge at y = 0."""
+    x = np.array([-0.15, 0.0, 0.15, 0.15, 0.15, 0.0, -0.15, -0.15])
+    y = np.array([0.0, 0.0, 0.0, 0.15, 0.30, 0.30, 0.30, 0.15])
+    return np.stack([x, y, np.zeros(8)], 1)
+
+
+CTX = SafetyContext(
+    edge_length=L,
+    workspace_lower=np.array([-0.4, -0.4, -0.01]),
+    workspace_upper=np.array([0.4, 0.4, 0.5]),
+)
+CFG = SafetyConfig()
+
+
+def violated(A, S=None, ctx=CTX, S_next=None):
+    import torch
+
+    t = torch.as_tensor
+    S = flat_state() if S is None else S
+    out = rule_violations(
+        t(S), t(np.asarray(A, float)), CFG, ctx, None if S_next is None else t(S_next)
+    )
+    return {k for k, v in out.items() if bool(v)}
+
+
+def test_pulling_back_and_lifting_is_valid():
+    assert violated([0, -0.02, 0.02, 0, -0.02, 0.02]) == set()
+    assert valid_actions_np(flat_state(), [0, -0.02, 0.02, 0, -0.02, 0.02], CFG, CTX)
+
+
+def test_action_bound():
+    assert violated([0, -0.04, 0, 0, -0.02, 0]) == {"bounds"}
+
+
+def test_grasp_distance_band():
+    # Together: 0.30 - 2 * 0.03 = 0.24 > tau_c * L = 0.15 is fine ...
+    assert "distance" not in violated([0.03, 0, 0, -0.03, 0, 0])
+    # ... pulled apart beyond tau_f * L = 0.315 is not.
+    assert "distance" in violated([-0.03, 0, 0, 0.03, 0, 0])
+    S = flat_state()
+    S[0, 0], S[2, 0] = -0.08, 0.08  # grippers 16 cm apart
+    assert "distance" in violated([0.01, 0, 0, -0.01, 0, 0], S=S)
+
+
+def test_move_direction_against_the_edge():
+    # Edge s1 - s3 points to -y; pushing into the cloth (+y) is 180 degrees.
+    assert "direction" in violated([0, 0.02, 0, 0, -0.02, 0])
+    # Sideways (90 degrees) is below tau_d = 100 degrees.
+    assert "direction" not in violated([0.01, 0, 0, 0.01, 0, 0])
+    # A tiny move has no direction.
+    assert "direction" not in violated([0, 0.001, 0, 0, 0, 0])
+
+
+def test_cloth_inside_the_workspace():
+    S = flat_state() + [0.0, -0.39, 0.0]
+    assert "workspace" in violated([0, -0.02, 0, 0, -0.02, 0], S=S)
+    S_next = flat_state() + [0.3, 0, 0]  # a predicted state off the side
+    assert "workspace" in violated([0, 0, 0, 0, 0, 0], S_next=S_next)
+    assert "workspace" in violated([0, 0, -0.02, 0, 0, 0])  # below the table
+
+
+def test_grippers_clear_of_the_object():
+    ctx = SafetyContext(
+        edge_length=L,
+        workspace_lower=CTX.workspace_lower,
+        workspace_upper=CTX.workspace_upper,
+        object_size=np.array([0.14, 0.09, 0.06]),
+    )
+    S = flat_state() + [0, 0.10, 0.0]
+    # Left gripper ends at (-0.12, 0.08, 0.02): above the box footprint? no,
+    # x = -0.12 is outside |x| < 0.07 + 0.02; y in range; so it is clear.
+    assert "object" not in violated([0.03, -0.02, 0.02, 0, 0, 0], S=S, ctx=ctx)
+    S2 = flat_state()
+    S2[0] = [-0.05, 0.06, 0.03]
+    assert "object" in violated([0.0, -0.02, 0.0, 0, 0, 0], S=S2, ctx=ctx)
+    S2[0, 2] = 0.12  # high above the box: clear
+    assert "object" not in violated([0.0, -0.02, 0.0, 0, 0, 0], S=S2, ctx=ctx)
+
+
+def test_rules_are_batched():
+    rng = np.random.default_rng(0)
+    S = np.broadcast_to(flat_state(), (200, 8, 3))
+    A = rng.uniform(-0.03, 0.03, (200, 6))
+    batched = valid_actions_np(S, A, CFG, CTX)
+    one_by_one = [bool(valid_actions_np(S[i], A[i], CFG, CTX)) for i in range(200)]
+    assert batched.tolist() == one_by_one
+    assert 0 < batched.sum() < 200
+
+
+def test_bad_thresholds_are_rejected():
+    with pytest.raises(ValueError, match="tau_c"):
+        SafetyConfig(tau_c=1.2, tau_f=1.0)
