@@ -1,0 +1,224 @@
+"""Demo learning, reward, termination, MPC and the imitation systems."""
+
+import math
+
+import numpy as np
+import pytest
+import torch
+from fabric_imitation.learning.demo_learning import (
+    DemoModel,
+    RewardConfig,
+    learn_from_demo,
+)
+from fabric_imitation.learning.mpc import Mpc, MpcConfig
+from fabric_imitation.learning.polygon import iou
+from fabric_imitation.learning.safety import SafetyConfig, SafetyContext, valid_actions
+from fabric_imitation.learning.state import world_to_object
+from fabric_imitation.systems.imitation import DemoReward, KeypointEstimator
+from pydrake.math import RigidTransform, RotationMatrix
+from pydrake.systems.sensors import ImageDepth32F, ImageGrey8U
+
+
+def square(x0, y0, side, z=0.0):
+    """An 8-keypoint flat cloth: grasped edge at y0, far edge at y0 + side."""
+    h = side / 2
+    x = np.array([-h, 0, h, h, h, 0, -h, -h]) + x0
+    y = np.array([0, 0, 0, h, side, side, side, h]) + y0
+    return np.stack([x, y, np.full(8, z)], 1).astype(np.float32)
+
+
+def test_iou_of_hand_made_polygons():
+    t = torch.as_tensor
+    a, b = t(square(0, 0, 0.3)[:, :2]), t(square(0.15, 0, 0.3)[:, :2])
+    assert float(iou(a, b)) == pytest.approx(1 / 3, abs=1e-4)
+    assert float(iou(a, a)) == pytest.approx(1.0, abs=1e-4)
+    assert float(iou(a, t(square(1.0, 0, 0.3)[:, :2]))) == 0.0
+    inner = t(square(0.0, 0.075, 0.15)[:, :2])
+    assert float(iou(a, inner)) == pytest.approx(0.25, abs=1e-4)
+
+
+class Exact:
+    """f_A stand-in: the exact translation between centroids, no rotation."""
+
+    def __call__(self, S, S_E):
+        T = (S_E - S).mean(-2)
+        return torch.zeros_like(T), T
+
+
+def demo_model(states, **cfg):
+    return DemoModel(np.asarray(states), Exact(), RewardConfig(**cfg))
+
+
+def pulled_demo(n=8, step=0.03):
+    """A demo pulling a flat cloth towards -y, step by step."""
+    return np.stack([square(0, 0.1 - step * j, 0.3, z=0.01) for j in range(n)])
+
+
+def test_progress_by_iou_and_by_centre_when_nothing_overlaps():
+    model = demo_model(pulled_demo())
+    J, best = model.progress(
+        torch.as_tensor(square(0, 0.1 - 0.03 * 3, 0.3, z=0.01))[None]
+    )
+    assert int(J[0]) == 3 and float(best[0]) == pytest.approx(1.0, abs=1e-4)
+    far = torch.as_tensor(square(0, -1.0, 0.3))[None]  # overlaps no demo state
+    J, best = model.progress(far)
+    assert float(best[0]) == 0.0 and int(J[0]) == 7  # nearest centre: the last
+
+
+def test_reward_and_termination_on_hand_made_states():
+    states = pulled_demo()
+    model = demo_model(states, w_p=10.0, w_n=10.0, tau_i=0.9)
+    S3 = torch.as_tensor(states[3])
+    r, J = model.reward(S3[None])
+    # J = 3, subgoal S_E[4] is 3 cm away: R = 3 - 10 * 0.03.
+    assert int(J[0]) == 3
+    assert float(r[0]) == pytest.approx(3 - 10 * 0.03, abs=1e-5)
+    # Overshoot: past the last state, D_N = mean distance to S_E^T.
+    past = torch.as_tensor(states[-1] - [0, 0.01, 0])
+    r_past, J_past = model.reward(past[None])
+    assert int(J_past[0]) == 7
+    assert float(r_past[0]) == pytest.approx(7 - 10 * 0.01 - 10 * 0.01, abs=1e-4)
+    assert bool(model.done(torch.as_tensor(states[-1])))
+    assert not bool(model.done(torch.as_tensor(states[-2])))
+    assert not bool(model.done(past + torch.tensor([0.0, -0.05, 0.0])))
+
+
+def test_registration_recovers_a_known_rigid_transform():
+    rng = np.random.default_rng(0)
+    source = square(0.0, 0.0, 0.3) + rng.normal(0, 0.005, (8, 3)).astype(np.float32)
+    source[:, 2] = np.abs(source[:, 2])
+    yaw = math.radians(20)
+    R = np.array(
+        [
+            [math.cos(yaw), -math.sin(yaw), 0],
+            [math.sin(yaw), math.cos(yaw), 0],
+            [0, 0, 1],
+        ],
+        np.float32,
+    )
+    target = source @ R.T + np.array([0.05, -0.02, 0.0], np.float32)
+    prior = np.stack(
+        [square(0, 0, 0.3) + rng.normal(0, 0.01, (8, 3)) for _ in range(64)]
+    )
+    model, info = learn_from_demo(
+        target[None], prior.astype(np.float32), RewardConfig(registration_steps=1500)
+    )
+    aligned, e, T = model.f_A.align(torch.as_tensor(source), torch.as_tensor(target))
+    error = (aligned - torch.as_tensor(target)).norm(dim=-1).mean()
+    assert float(error.detach()) < 0.01
+    assert float(e[2].detach()) == pytest.approx(yaw, abs=math.radians(5))
+
+
+class Linear:
+    """A fake dynamics model: the grasped corners move by a_L, a_R, every other
+    keypoint by their mean."""
+
+    def forward(self, S, A):
+        S = torch.as_tensor(S, dtype=torch.float32)
+        A = torch.as_tensor(A, dtype=torch.float32)
+        a_l, a_r = A[..., None, :3], A[..., None, 3:]
+        move = ((a_l + a_r) / 2).expand(S.shape).clone()
+        move[..., 0, :] = a_l[..., 0, :]
+        move[..., 2, :] = a_r[..., 0, :]
+        return S + move
+
+    def inverse(self, S, S_next):
+        d = torch.as_tensor(S_next) - torch.as_tensor(S)
+        return torch.cat([d[..., 0, :], d[..., 2, :]], -1)
+
+
+CTX = SafetyContext(
+    edge_length=0.3,
+    workspace_lower=np.array([-0.45, -0.45, -0.01]),
+    workspace_upper=np.array([0.45, 0.45, 0.5]),
+)
+
+
+@pytest.mark.parametrize("use_prior", [True, False])
+def test_mpc_on_a_linear_model_reaches_the_goal_and_stays_feasible(use_prior):
+    states = pulled_demo(n=8)
+    model = demo_model(states, tau_i=0.9)
+    safety = SafetyConfig()
+    mpc = Mpc(
+        dynamics=Linear(),
+        demo=model,
+        safety=safety,
+        safety_ctx=CTX,
+        config=MpcConfig(
+            num_samples=200,
+            horizon=3,
+            elites=20,
+            max_iterations=3,
+            time_budget=10.0,
+            use_prior=use_prior,
+        ),
+    )
+    S = torch.as_tensor(states[0] + [0.02, 0.0, 0.0])  # a little to the side
+    for step in range(30):
+        if bool(model.done(S)):
+            break
+        result = mpc.solve(S, step=step)
+        assert result.feasible
+        assert bool(valid_actions(S, result.action, safety, CTX))
+        S = Linear().forward(S, result.action)
+    assert bool(model.done(S)), (S - torch.as_tensor(states[-1])).norm(dim=-1).mean()
+
+
+def test_mpc_reports_no_feasible_action():
+    states = pulled_demo()
+    # The far edge lies 15 cm beyond the workspace: no move brings it back in
+    # one step, so every sequence violates rule 3.
+    start = square(0, 0.3, 0.3, z=0.01)
+    mpc = Mpc(
+        dynamics=Linear(),
+        demo=demo_model(states),
+        safety=SafetyConfig(),
+        safety_ctx=CTX,
+        config=MpcConfig(num_samples=50, horizon=2, elites=5, max_iterations=2),
+    )
+    assert not mpc.solve(torch.as_tensor(start)).feasible
+
+
+def test_demo_reward_system():
+    states = pulled_demo()
+    model = demo_model(states)
+    dut = DemoReward(demo=model, num_keypoints=8)
+    context = dut.CreateDefaultContext()
+    dut.GetInputPort("keypoints").FixValue(context, states[2].ravel())
+    r, J = model.reward(torch.as_tensor(states[2])[None])
+    assert dut.GetOutputPort("progress").Eval(context)[0] == 2
+    assert dut.GetOutputPort("reward").Eval(context)[0] == pytest.approx(float(r[0]))
+    assert dut.GetOutputPort("done").Eval(context)[0] == 0
+    dut.GetInputPort("keypoints").FixValue(context, states[-1].ravel())
+    assert dut.GetOutputPort("done").Eval(context)[0] == 1
+
+
+class FixedPriors:
+    def __init__(self, points):
+        self.points = points
+        self.seen = []
+
+    def keypoints(self, mask, depth):
+        self.seen.append((mask.shape, depth.shape))
+        return self.points
+
+
+def test_keypoint_estimator_system_outputs_object_frame_keypoints():
+    p_W = square(0.1, 0.2, 0.3, z=0.01)
+    priors = FixedPriors(p_W)
+    dut = KeypointEstimator(
+        priors=priors, num_keypoints=8, width=32, height=24, period=0.2
+    )
+    context = dut.CreateDefaultContext()
+    dut.GetInputPort("mask").FixValue(context, ImageGrey8U(32, 24))
+    dut.GetInputPort("depth").FixValue(context, ImageDepth32F(32, 24))
+    X_WO = RigidTransform(RotationMatrix.MakeZRotation(0.5), [0.05, -0.1, 0.0])
+    dut.GetInputPort("object_pose").FixValue(context, X_WO)
+    state = dut.CreateDefaultContext().get_discrete_state()
+    dut.CalcForcedDiscreteVariableUpdate(context, state)
+    context.SetDiscreteState(state)
+    expected = world_to_object(p_W, [0.05, -0.1, 0.5])
+    np.testing.assert_allclose(
+        dut.GetOutputPort("keypoints").Eval(context), expected.ravel(), atol=1e-6
+    )
+    assert priors.seen == [((24, 32), (24, 32))]
