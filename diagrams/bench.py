@@ -145,3 +145,161 @@ def BenchSim(
     if out is not None:
         Path(out).write_text(json.dumps(summary, indent=1))
     return summary
+
+
+def BenchCollect(
+    *,
+    transitions: int = 80,
+    workers=(1, 2),
+    out: Path | None = None,
+    workdir: Path | None = None,
+) -> dict:
+    """Transitions per minute of prior collection with 1 and 2 workers."""
+    import shutil
+    import tempfile
+
+    from fabric_imitation.diagrams.collect import Collect
+
+    scenario = LoadScenario(scenario_name="prior")
+    root = Path(workdir or tempfile.mkdtemp(prefix="bench_collect_"))
+    rows = []
+    try:
+        for k in workers:
+            path = root / f"w{k}.h5"
+            t0 = time.perf_counter()
+            summary = Collect(
+                scenario=scenario,
+                scenario_name="prior",
+                transitions=transitions,
+                out=path,
+                workers=k,
+                show_progress=False,
+            )
+            wall = time.perf_counter() - t0
+            tpm = 60 * summary["transitions"] / wall
+            rows.append(
+                {
+                    "workers": k,
+                    "transitions": summary["transitions"],
+                    "wall_seconds": round(wall, 1),
+                    "transitions_per_minute": round(tpm, 1),
+                    "minutes_for_10000": round(10000 / tpm, 1),
+                    "fingerprint": summary["fingerprint"],
+                }
+            )
+    finally:
+        if workdir is None:
+            shutil.rmtree(root, ignore_errors=True)
+    result = {
+        "benchmark": "collect",
+        "target_minutes_for_10000": 30,
+        "runs": rows,
+        "same_data_for_every_worker_count": len({r["fingerprint"] for r in rows}) == 1,
+    }
+    if out is not None:
+        Path(out).write_text(json.dumps(result, indent=1))
+    return result
+
+
+def BenchTrain(*, data: Path, out: Path | None = None) -> dict:
+    """Wall time of training the priors with the default settings on CPU."""
+    import tempfile
+
+    import torch
+    from fabric_imitation.learning.train import TrainConfig, train_priors
+
+    torch.set_num_threads(2)
+    with tempfile.TemporaryDirectory() as tmp:
+        t0 = time.perf_counter()
+        metrics = train_priors(
+            data=data, out=Path(tmp), config=TrainConfig(), progress=False
+        )
+        wall = time.perf_counter() - t0
+    result = {
+        "benchmark": "train",
+        "target_minutes": 10,
+        "threads": 2,
+        "wall_seconds": round(wall, 1),
+        "minutes": round(wall / 60, 2),
+        "metrics": metrics,
+    }
+    if out is not None:
+        Path(out).write_text(json.dumps(result, indent=1))
+    return result
+
+
+def BenchMpc(
+    *,
+    scenario_name: str = "box",
+    priors_dir: Path | None = None,
+    demo_dir: Path | None = None,
+    steps: int = 40,
+    out: Path | None = None,
+    num_samples: int = 500,
+    horizon: int = 5,
+) -> dict:
+    """MPC control-step latency (N = 500, h = 5, 2 threads) from demo states and
+    perturbed ones, and the time from a demo to the first action (f_R on the
+    demo frames, training f_A, first solve)."""
+    import torch
+    from fabric_imitation.diagrams.imitation import (
+        DEFAULT_DEMOS,
+        DEFAULT_PRIORS,
+        DemoStates,
+        ObjectSafetyContext,
+    )
+    from fabric_imitation.learning.demo_io import LoadDemo
+    from fabric_imitation.learning.demo_learning import learn_from_demo
+    from fabric_imitation.learning.mpc import Mpc, MpcConfig
+    from fabric_imitation.learning.priors import load_priors
+
+    torch.set_num_threads(2)
+    scenario = LoadScenario(scenario_name=scenario_name)
+    priors = load_priors(priors_dir or DEFAULT_PRIORS)
+    t0 = time.perf_counter()
+    demo = LoadDemo(demo_dir or DEFAULT_DEMOS / scenario_name)
+    states = DemoStates(priors, demo)
+    t_fr = time.perf_counter() - t0
+    model, info = learn_from_demo(states, priors.prior_states)
+    config = MpcConfig(num_samples=num_samples, horizon=horizon)
+    mpc = Mpc(
+        dynamics=priors,
+        demo=model,
+        safety=scenario.safety,
+        safety_ctx=ObjectSafetyContext(scenario),
+        config=config,
+    )
+    first = mpc.solve(torch.as_tensor(states[0], dtype=torch.float32))
+    demo_to_first = time.perf_counter() - t0
+    rng = np.random.default_rng(0)
+    ms, iters, feasible = [], [], 0
+    for k in range(steps):
+        S = states[k % len(states)] + rng.normal(0, 0.01, states[0].shape)
+        r = mpc.solve(torch.as_tensor(S, dtype=torch.float32), step=k)
+        ms.append(1000 * r.seconds)
+        iters.append(r.iterations)
+        feasible += int(r.feasible)
+    result = {
+        "benchmark": "mpc",
+        "scenario": scenario_name,
+        "threads": 2,
+        "num_samples": num_samples,
+        "horizon": horizon,
+        "max_iterations": config.max_iterations,
+        "time_budget_s": config.time_budget,
+        "step_ms": {
+            "p50": round(float(np.percentile(ms, 50)), 1),
+            "p95": round(float(np.percentile(ms, 95)), 1),
+            "max": round(float(np.max(ms)), 1),
+        },
+        "iterations_mean": round(float(np.mean(iters)), 2),
+        "feasible_fraction": round(feasible / steps, 3),
+        "demo_to_first_action_s": round(demo_to_first, 2),
+        "demo_keypoints_s": round(t_fr, 2),
+        "registration_s": info["registration_seconds"],
+        "first_solve_ms": round(1000 * first.seconds, 1),
+        "targets": {"p95_ms": 100, "demo_to_first_action_s": 60},
+    }
+    if out is not None:
+        Path(out).write_text(json.dumps(result, indent=1))
+    return result

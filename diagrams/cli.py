@@ -262,6 +262,56 @@ def _bench_sim(args) -> dict:
     )
 
 
+def _add_bench_collect(p):
+    p.add_argument(
+        "--transitions",
+        type=int,
+        default=80,
+        help="transitions per run (each worker count is one run)",
+    )
+    p.add_argument("--out", type=Path, default=None, help="also write the JSON here")
+
+
+@command("bench collect")(_add_bench_collect)
+def _bench_collect(args) -> dict:
+    from fabric_imitation.diagrams.bench import BenchCollect
+
+    return BenchCollect(transitions=args.transitions, out=args.out)
+
+
+def _add_bench_train(p):
+    p.add_argument("--data", type=Path, required=True, help="prior dataset (HDF5)")
+    p.add_argument("--out", type=Path, default=None, help="also write the JSON here")
+
+
+@command("bench train")(_add_bench_train)
+def _bench_train(args) -> dict:
+    from fabric_imitation.diagrams.bench import BenchTrain
+
+    return BenchTrain(data=args.data, out=args.out)
+
+
+def _add_bench_mpc(p):
+    p.add_argument("--scenario", default="box", help="task whose shipped demo is used")
+    p.add_argument("--priors", type=Path, default=None)
+    p.add_argument("--demo", type=Path, default=None)
+    p.add_argument("--steps", type=int, default=40, help="control steps timed")
+    p.add_argument("--out", type=Path, default=None, help="also write the JSON here")
+
+
+@command("bench mpc")(_add_bench_mpc)
+def _bench_mpc(args) -> dict:
+    from fabric_imitation.diagrams.bench import BenchMpc
+
+    return BenchMpc(
+        scenario_name=args.scenario,
+        priors_dir=args.priors,
+        demo_dir=args.demo,
+        steps=args.steps,
+        out=args.out,
+    )
+
+
 def _build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="fabric-imitate",

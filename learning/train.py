@@ -32,9 +32,7 @@ PRIOR_STATES_KEPT = 2000
 @dc.dataclass
 class TrainConfig:
     epochs: int = 20  # f_D, f_I (the paper's 20)
-    # f_R: fewer passes than the MLPs; with augmentation every pass sees new
-    # images, and 6 keep training within about 10 minutes on 2 CPU cores.
-    keypoint_epochs: int = 6
+    keypoint_epochs: int = 20  # f_R
     batch_size: int = 128
     keypoint_batch_size: int = 32
     lr: float = 1e-3
