@@ -281,6 +281,12 @@ def _bench_collect(args) -> dict:
 
 def _add_bench_train(p):
     p.add_argument("--data", type=Path, required=True, help="prior dataset (HDF5)")
+    p.add_argument(
+        "--keypoint-epochs",
+        type=int,
+        default=None,
+        help="epochs of f_R (default: the training default, 20)",
+    )
     p.add_argument("--out", type=Path, default=None, help="also write the JSON here")
 
 
@@ -288,7 +294,9 @@ def _add_bench_train(p):
 def _bench_train(args) -> dict:
     from fabric_imitation.diagrams.bench import BenchTrain
 
-    return BenchTrain(data=args.data, out=args.out)
+    return BenchTrain(
+        data=args.data, out=args.out, keypoint_epochs=args.keypoint_epochs
+    )
 
 
 def _add_bench_mpc(p):
