@@ -172,12 +172,7 @@ def _add_train(p):
     p.add_argument("--data", type=Path, required=True, help="prior dataset (HDF5)")
     p.add_argument("--out", type=Path, required=True, help="checkpoint directory")
     p.add_argument("--epochs", type=int, default=20, help="epochs of f_D and f_I")
-    p.add_argument(
-        "--keypoint-epochs",
-        type=int,
-        default=None,
-        help="epochs of f_R (default: --epochs)",
-    )
+    p.add_argument("--keypoint-epochs", type=int, default=10, help="epochs of f_R")
     p.add_argument("--seed", type=int, default=0)
 
 
@@ -186,11 +181,7 @@ def _train(args) -> dict:
     from fabric_imitation.learning.train import TrainConfig, train_priors
 
     config = TrainConfig(
-        epochs=args.epochs,
-        seed=args.seed,
-        keypoint_epochs=args.epochs
-        if args.keypoint_epochs is None
-        else args.keypoint_epochs,
+        epochs=args.epochs, seed=args.seed, keypoint_epochs=args.keypoint_epochs
     )
     return train_priors(data=args.data, out=args.out, config=config)
 
@@ -234,6 +225,45 @@ def _imitate(args) -> dict:
         record=args.record,
         video=args.video,
         seed=args.seed,
+    )
+
+
+def _add_evaluate(p):
+    p.add_argument(
+        "--scenarios", nargs="+", default=["box", "hang"], help="scenario names"
+    )
+    p.add_argument(
+        "--methods",
+        nargs="+",
+        default=["ours"],
+        help="ours, no_mpc, no_prior, no_cost, scripted",
+    )
+    p.add_argument("--trials", type=int, default=10, help="trials per scenario")
+    p.add_argument(
+        "--out",
+        type=Path,
+        required=True,
+        help="JSON-lines file of trials (resumed if it exists)",
+    )
+    p.add_argument("--workers", type=int, default=1)
+    p.add_argument("--seed", type=int, default=0, help="seed of the trial poses")
+    p.add_argument("--demo", type=Path, default=None)
+    p.add_argument("--priors", type=Path, default=None)
+
+
+@command("evaluate")(_add_evaluate)
+def _evaluate(args) -> dict:
+    from fabric_imitation.diagrams.evaluate import Evaluate
+
+    return Evaluate(
+        scenario_names=args.scenarios,
+        methods=args.methods,
+        trials=args.trials,
+        out=args.out,
+        workers=args.workers,
+        seed=args.seed,
+        demo=args.demo,
+        priors=args.priors,
     )
 
 
@@ -285,7 +315,7 @@ def _add_bench_train(p):
         "--keypoint-epochs",
         type=int,
         default=None,
-        help="epochs of f_R (default: the training default, 20)",
+        help="epochs of f_R (default: the training default, 10)",
     )
     p.add_argument("--out", type=Path, default=None, help="also write the JSON here")
 
