@@ -47,6 +47,7 @@ from fabric_imitation.systems.targets import GripperTargetIntegrator
 from fabric_imitation.systems.visualization import ClothFrameRecorder
 from pydrake.systems.analysis import Simulator
 from pydrake.systems.framework import Diagram, DiagramBuilder
+from pydrake.systems.primitives import Multiplexer
 
 PACKAGE_ROOT = Path(__file__).resolve().parent.parent
 DEFAULT_PRIORS = PACKAGE_ROOT / "learning" / "priors" / "default"
@@ -152,6 +153,13 @@ def MakeImitationDiagram(
             station.GetOutputPort(StationPorts.OBJECT_POSE),
             system.GetInputPort("object_pose"),
         )
+    grippers = builder.AddNamedSystem("gripper_positions", Multiplexer([3, 3]))
+    for k, side in enumerate(SIDES):
+        builder.Connect(
+            station.GetOutputPort(StationPorts.ee_measured(side)),
+            grippers.get_input_port(k),
+        )
+    builder.Connect(grippers.get_output_port(), estimator.GetInputPort("grippers"))
     for system in (reward, controller):
         builder.Connect(
             estimator.GetOutputPort("keypoints"), system.GetInputPort("keypoints")

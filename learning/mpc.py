@@ -45,6 +45,12 @@ class MpcConfig:
     use_cost: bool = True
     # Episode step cap as a multiple of the demo length (plus 5).
     step_cap_factor: float = 2.0
+    # Perturbations tried to replace an invalid action of the prior.
+    prior_candidates: int = 64
+    # Progress tracking: J may move back by lag and ahead by lead per step
+    # (lead < 0: search the whole demo every step, as in the paper).
+    progress_lag: int = 1
+    progress_lead: int = 2
 
     def __post_init__(self):
         if self.num_samples < 1 or self.horizon < 1:
@@ -89,17 +95,43 @@ class Mpc:
         return A.clamp(-b, b)
 
     @torch.no_grad()
-    def action_prior(self, S: torch.Tensor) -> torch.Tensor:
-        """(h, 6): iterate f_I towards the subgoal of the imagined state, f_D."""
+    def action_prior(
+        self, S: torch.Tensor, gen: torch.Generator | None = None, window=None
+    ):
+        """(h, 6): iterate f_I towards the subgoal of the imagined state, f_D.
+
+        An f_I action that breaks a rule is replaced by the nearest valid one
+        among `prior_candidates` perturbations of it (zero if none is valid),
+        so that the samples drawn around the prior start near feasible ones.
+        """
+        cfg = self.config
         out = []
         s = S[None]
-        for _ in range(self.config.horizon):
-            J, _ = self.demo.progress(s)
+        for _ in range(cfg.horizon):
+            J, _ = self.demo.progress(s, window)
             goal = self.demo.states[(J + 1).clamp(max=self.demo.T - 1)]
             a = self._clip(self.dynamics.inverse(s, goal))
+            nxt = self.dynamics.forward(s, a)
+            if cfg.use_cost and not bool(
+                valid_actions(s, a, self.safety, self.ctx, S_next=nxt)
+            ):
+                a = self._nearest_valid(s, a, gen)
             out.append(a[0])
             s = self.dynamics.forward(s, a)
         return torch.stack(out)
+
+    def _nearest_valid(self, s, a, gen) -> torch.Tensor:
+        cfg = self.config
+        noise = torch.randn(cfg.prior_candidates, 6, generator=gen)
+        cand = self._clip(torch.cat([torch.zeros_like(a), a + cfg.sigma0 * noise]))
+        ss = s.expand(len(cand), *s.shape[1:])
+        nxt = self.dynamics.forward(ss, cand)
+        ok = valid_actions(ss, cand, self.safety, self.ctx, S_next=nxt)
+        if not ok.any():
+            return torch.zeros_like(a)
+        d = (cand - a).norm(dim=-1)
+        d = torch.where(ok, d, torch.full_like(d, float("inf")))
+        return cand[d.argmin()][None]
 
     @torch.no_grad()
     def rollout(self, S: torch.Tensor, X: torch.Tensor, window):
@@ -121,18 +153,33 @@ class Mpc:
         return (discount[:, None] * r).sum(0), cost
 
     @torch.no_grad()
-    def solve(self, S, *, step: int = 0, seed: int = 0) -> MpcResult:
-        """One control step from state S (M, 3)."""
+    def solve(
+        self, S, *, step: int = 0, seed: int = 0, previous_progress: int | None = None
+    ) -> MpcResult:
+        """One control step from state S (M, 3).
+
+        With `previous_progress` (the last step's J) the current progress is
+        searched in [J - progress_lag, J + progress_lead] only: a top-down
+        polygon cannot tell a lifted or lowered cloth from one at another
+        height, and free jumps of J made the controller hunt back and forth.
+        """
         cfg = self.config
         t0 = time.perf_counter()
         S = torch.as_tensor(S, dtype=torch.float32)
-        J0, _ = self.demo.progress(S[None])
+        search = None
+        if previous_progress is not None and cfg.progress_lead >= 0:
+            search = (
+                max(0, previous_progress - cfg.progress_lag),
+                min(self.demo.T, previous_progress + cfg.progress_lead + 1),
+            )
+        J0, _ = self.demo.progress(S[None], search)
         J0 = int(J0[0])
         window = self._window(J0)
+        gen = torch.Generator().manual_seed(seed * 100003 + step)
         prior = (
-            self.action_prior(S)
+            self.action_prior(S, gen, window)
             if cfg.use_prior or not cfg.use_mpc
-            else (torch.zeros(cfg.horizon, 6))
+            else torch.zeros(cfg.horizon, 6)
         )
         if not cfg.use_mpc:
             a = prior[0]
@@ -144,7 +191,6 @@ class Mpc:
             return MpcResult(
                 a, ok or not cfg.use_cost, 0, float("nan"), J0, time.perf_counter() - t0
             )
-        gen = torch.Generator().manual_seed(seed * 100003 + step)
         mu = torch.zeros(cfg.horizon, 6)
         var = torch.full((cfg.horizon, 6), cfg.sigma0**2)
         best_r, best_a = -float("inf"), None

@@ -6,7 +6,7 @@ import time
 
 import numpy as np
 import torch
-from fabric_imitation.learning.state import world_to_object
+from fabric_imitation.learning.state import corner_indices, world_to_object
 from pydrake.common.value import AbstractValue
 from pydrake.math import RigidTransform
 from pydrake.systems.framework import BasicVector, EventStatus, LeafSystem
@@ -32,8 +32,14 @@ class KeypointEstimator(LeafSystem):
     """f_R on the camera's fabric mask and depth -> M keypoints in the object
     frame, updated once per control step (periodic event).
 
+    The grasped corners s1, s2 are where the grippers hold them, so when the
+    optional ``grippers`` input is connected they are taken from it (the
+    robot's own measurement) instead of from the image, where a corner can
+    hide under the cloth.
+
     Input ports: ``mask`` (ImageGrey8U), ``depth`` (ImageDepth32F),
-    ``object_pose`` (RigidTransform X_WO).
+    ``object_pose`` (RigidTransform X_WO), ``grippers`` (6, optional: left
+    and right gripper positions in world).
     Output ports: ``keypoints`` (3M, object frame; from state).
 
     Args:
@@ -61,6 +67,8 @@ class KeypointEstimator(LeafSystem):
         self._pose = self.DeclareAbstractInputPort(
             "object_pose", AbstractValue.Make(RigidTransform())
         )
+        self._grippers = self.DeclareVectorInputPort("grippers", 6)
+        self._corners = [corner_indices(num_keypoints)[k] for k in ("s1", "s2")]
         self._state = self.DeclareDiscreteState(3 * num_keypoints)
         self.DeclarePeriodicDiscreteUpdateEvent(period, offset, self._update)
         self.DeclareForcedDiscreteUpdateEvent(self._update)
@@ -69,7 +77,9 @@ class KeypointEstimator(LeafSystem):
     def _update(self, context, discrete_state) -> EventStatus:
         mask = self._mask.Eval(context).data[:, :, 0]
         depth = self._depth.Eval(context).data[:, :, 0]
-        p_W = self._priors.keypoints(mask, depth)
+        p_W = np.array(self._priors.keypoints(mask, depth))
+        if self._grippers.HasValue(context):
+            p_W[self._corners] = self._grippers.Eval(context).reshape(2, 3)
         p_O = world_to_object(p_W, _pose_vector(self._pose.Eval(context)))
         discrete_state.get_mutable_vector(self._state).SetFromVector(p_O.ravel())
         return EventStatus.Succeeded()
@@ -144,6 +154,7 @@ class MpcController(LeafSystem):
         self._action = self.DeclareDiscreteState(6)
         self._release = self.DeclareDiscreteState(1)
         self._status = self.DeclareDiscreteState(4)
+        self._progress = self.DeclareDiscreteState(1)  # J of the last step
         self.DeclarePeriodicDiscreteUpdateEvent(period, offset, self._update)
         self.DeclareStateOutputPort("action", self._action)
         self.DeclareStateOutputPort("release", self._release)
@@ -167,7 +178,13 @@ class MpcController(LeafSystem):
         action_W = np.zeros(6)
         feasible = 1.0
         if code == RUNNING:
-            result = self._mpc.solve(S, step=steps, seed=self._seed)
+            previous = int(context.get_discrete_state(self._progress).value()[0])
+            result = self._mpc.solve(
+                S, step=steps, seed=self._seed, previous_progress=previous
+            )
+            discrete_state.get_mutable_vector(self._progress).SetFromVector(
+                [result.progress]
+            )
             if result.feasible:
                 yaw = _pose_vector(self._pose.Eval(context))[2]
                 c, s = np.cos(yaw), np.sin(yaw)
