@@ -13,7 +13,7 @@ import time
 import numpy as np
 import torch
 from fabric_imitation.learning.models import Mlp
-from fabric_imitation.learning.polygon import iou
+from fabric_imitation.learning.polygon import iou, iou_batched
 
 
 @dc.dataclass
@@ -31,6 +31,8 @@ class RewardConfig:
     # from one at another height (the hang demo lowers 32 cm straight down), so
     # the distance breaks such ties; 0 gives the paper's J.
     progress_distance_weight: float = 2.0
+    # Score the MPC's thousands of predicted states with a compiled IoU.
+    compile_iou: bool = True
     # f_A training: steps, batch, learning rate, source-state jitter.
     registration_steps: int = 1500
     registration_batch: int = 256
@@ -134,12 +136,18 @@ class DemoModel:
         self.f_A = registration
         self.config = config
         self.polygons = self.states[..., :2]
+        self.compile_iou = config.compile_iou
         self.centres = self.polygons.mean(-2)
 
     def similarity(self, S: torch.Tensor, window: tuple[int, int] | None = None):
         """IoU (..., W) of S with demo states lo..hi-1 (default all)."""
         lo, hi = window or (0, self.T)
-        return iou(S[..., None, :, :2], self.polygons[lo:hi])
+        A, B = S[..., None, :, :2], self.polygons[lo:hi]
+        lead = S.shape[:-2]
+        if self.compile_iou and math.prod(lead) * (hi - lo) >= 2000:
+            flat = A.reshape(-1, 1, *A.shape[-2:]).contiguous()
+            return iou_batched(flat, B[None].contiguous()).reshape(*lead, hi - lo)
+        return iou(A, B)
 
     def progress(self, S: torch.Tensor, window: tuple[int, int] | None = None):
         """J (...): index of the most similar demo state by IoU of the top-down

@@ -36,7 +36,9 @@ class MpcConfig:
     sigma0: float = 0.01  # initial noise std [m]
     tau_conv: float = 0.002  # converged when max std is below [m]
     max_iterations: int = 4
-    time_budget: float = 0.09  # [s] no new iteration starts after this
+    # [s] per control step: an iteration starts only if, at the pace of the
+    # last one, it ends within the budget (the first always runs).
+    time_budget: float = 0.095
     gamma: float = 0.9
     # Ablations (paper Table I): no_mpc applies f_I's action; no_prior samples
     # around zero; no_cost ignores the constraint cost.
@@ -88,7 +90,12 @@ class Mpc:
         self.config = config
 
     def _window(self, J: int) -> tuple[int, int]:
-        return max(0, J - 1), min(self.demo.T, J + self.config.horizon + 2)
+        """Demo states the rollouts are compared with: from J - 1 on, a fixed
+        number (h + 1, fewer only for a shorter demo) so every step has the
+        same tensor shapes."""
+        width = min(self.demo.T, self.config.horizon + 1)
+        lo = min(max(0, J - 1), self.demo.T - width)
+        return lo, lo + width
 
     def _clip(self, A: torch.Tensor) -> torch.Tensor:
         b = self.safety.max_step
@@ -195,6 +202,7 @@ class Mpc:
         var = torch.full((cfg.horizon, 6), cfg.sigma0**2)
         best_r, best_a = -float("inf"), None
         iterations = 0
+        t_iteration = time.perf_counter()
         while iterations < cfg.max_iterations:
             iterations += 1
             eps = mu + var.sqrt() * torch.randn(
@@ -218,7 +226,11 @@ class Mpc:
                 var = (1 - cfg.beta) * var + cfg.beta * elite.var(0, unbiased=False)
                 if var.sqrt().max() < cfg.tau_conv:
                     break
-            if time.perf_counter() - t0 > cfg.time_budget:
+            # Start another iteration only if it fits in the step's budget.
+            now = time.perf_counter()
+            last = now - t_iteration
+            t_iteration = now
+            if now - t0 + last > cfg.time_budget:
                 break
         feasible = best_a is not None
         action = best_a if feasible else torch.zeros(6)
