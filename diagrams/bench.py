@@ -149,7 +149,7 @@ def BenchSim(
 
 def BenchCollect(
     *,
-    transitions: int = 80,
+    transitions: int = 400,
     workers=(1, 2),
     out: Path | None = None,
     workdir: Path | None = None,

@@ -296,7 +296,7 @@ def _add_bench_collect(p):
     p.add_argument(
         "--transitions",
         type=int,
-        default=80,
+        default=400,
         help="transitions per run (each worker count is one run)",
     )
     p.add_argument("--out", type=Path, default=None, help="also write the JSON here")
