@@ -378,18 +378,33 @@ def _build_parser() -> argparse.ArgumentParser:
     return parser
 
 
-def _print(summary: dict, as_json: bool) -> None:
+def _print(summary: dict, as_json: bool, out) -> None:
     if as_json:
-        print(json.dumps(summary, default=str))
+        print(json.dumps(summary, default=str), file=out, flush=True)
         return
     for key, value in summary.items():
-        print(f"{key}: {json.dumps(value, default=str)}")
+        print(f"{key}: {json.dumps(value, default=str)}", file=out, flush=True)
+
+
+def _stdout_for_summary_only():
+    """Points file descriptor 1 at stderr for the rest of the process and
+    returns a stream on the real stdout: native libraries (the QP solver of
+    Drake's differential IK prints "Polishing not needed" on every solve)
+    would otherwise break the one-JSON-object stdout."""
+    import os
+
+    sys.stdout.flush()
+    saved = os.dup(1)
+    os.dup2(2, 1)
+    sys.stdout = sys.stderr
+    return os.fdopen(saved, "w")
 
 
 def main(argv: list[str] | None = None) -> int:
     parser = _build_parser()
     args = parser.parse_args(argv)
     _, run = _COMMANDS[args._name]
+    out = _stdout_for_summary_only()
     try:
         summary = run(args)
     except InputError as e:
@@ -398,7 +413,7 @@ def main(argv: list[str] | None = None) -> int:
     except KeyboardInterrupt:
         print("fabric-imitate: interrupted", file=sys.stderr)
         return 130
-    _print(summary, args.json)
+    _print(summary, args.json, out)
     return 0
 
 

@@ -21,6 +21,7 @@ from fabric_imitation.diagrams.station import (
     SIDES,
     CameraModelFromConfig,
     GraspCorners,
+    InitializeStation,
     MakeClothStation,
     StationPorts,
 )
@@ -104,6 +105,7 @@ class EpisodeCollector:
         station.GetInputPort(StationPorts.RELEASE).FixValue(
             station.GetMyMutableContextFromRoot(self.context), [0.0]
         )
+        InitializeStation(station, station.GetMyMutableContextFromRoot(self.context))
         self.default_context = self.context.Clone()
         self.station_context = station.GetMyContextFromRoot(self.context)
         self.action_port = self.diagram.GetInputPort("action")

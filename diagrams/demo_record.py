@@ -39,6 +39,7 @@ def RunSummary(result: RunResult) -> dict:
         "wall_seconds": round(result.wall_seconds, 3),
         "realtime_factor": round(result.realtime_factor, 3),
         "error": result.error,
+        **({"robot": result.robot} if result.robot else {}),
     }
 
 

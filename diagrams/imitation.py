@@ -21,6 +21,7 @@ from fabric_imitation.diagrams.station import (
     AddReleaseMonitor,
     CameraModelFromConfig,
     GraspCorners,
+    InitializeStation,
     MakeClothStation,
     StationPorts,
 )
@@ -286,6 +287,7 @@ def Imitate(
         corners["left"],
         corners["right"],
     )
+    InitializeStation(station, station.GetMyMutableContextFromRoot(context))
     simulator.Initialize()
     dt = scenario.motion.step_seconds
     station_context = station.GetMyContextFromRoot(context)

@@ -13,6 +13,7 @@ from fabric_imitation.diagrams.station import (
     SIDES,
     AddReleaseMonitor,
     GraspCorners,
+    InitializeStation,
     MakeClothStation,
     StationPorts,
 )
@@ -68,6 +69,9 @@ class RunResult:
     sim_seconds: float
     wall_seconds: float
     error: str | None = None
+    # Panda arms only: smallest joint-limit margin [rad] and largest distance
+    # [m] between a hand and its target at the end of a control step.
+    robot: dict | None = None
 
     @property
     def realtime_factor(self) -> float:
@@ -127,6 +131,7 @@ class OpenLoopRun:
             self._add_recording(builder, station, meshcat)
         self.diagram = builder.Build()
         self.station = station
+        self.integrator = integrator
         self.simulator = Simulator(self.diagram)
         AddReleaseMonitor(self.simulator, station)
         self.context = self.simulator.get_mutable_context()
@@ -137,6 +142,7 @@ class OpenLoopRun:
             corners["right"],
         )
         self.station_context = station.GetMyContextFromRoot(self.context)
+        InitializeStation(station, station.GetMyMutableContextFromRoot(self.context))
         self.simulator.Initialize()
 
     def _add_recording(self, builder, station, meshcat: Meshcat) -> None:
@@ -161,6 +167,47 @@ class OpenLoopRun:
 
     def capture(self) -> Frame:
         return CaptureFrame(self.station, self.station_context)
+
+    robot: dict | None = None
+
+    def _robot_stats(self) -> None:
+        """Joint-limit margin and hand tracking error of Panda arms."""
+        station = self.station
+        if not station.HasOutputPort("left_panda.position_measured"):
+            return
+        plant = station.handles.plant
+        targets_context = self.integrator.GetMyContextFromRoot(self.context)
+        margin, error = np.inf, 0.0
+        for side in SIDES:
+            instance = plant.GetModelInstanceByName(f"{side}_panda")
+            q = station.GetOutputPort(f"{side}_panda.position_measured").Eval(
+                self.station_context
+            )
+            joints = [
+                plant.GetJointByName(f"panda_joint{i}", instance) for i in range(1, 8)
+            ]
+            lower = np.array([j.position_lower_limits()[0] for j in joints])
+            upper = np.array([j.position_upper_limits()[0] for j in joints])
+            margin = min(margin, float(np.min(np.minimum(q - lower, upper - q))))
+            target = self.integrator.GetOutputPort(f"{side}.ee_target").Eval(
+                targets_context
+            )
+            measured = station.GetOutputPort(StationPorts.ee_measured(side)).Eval(
+                self.station_context
+            )
+            error = max(error, float(np.linalg.norm(measured - target)))
+        old = self.robot or {
+            "min_joint_limit_margin_rad": np.inf,
+            "max_hand_tracking_error_m": 0.0,
+        }
+        self.robot = {
+            "min_joint_limit_margin_rad": round(
+                min(old["min_joint_limit_margin_rad"], margin), 4
+            ),
+            "max_hand_tracking_error_m": round(
+                max(old["max_hand_tracking_error_m"], error), 4
+            ),
+        }
 
     def capture_positions(self) -> np.ndarray:
         """Ground-truth cloth vertices (N, 3), without rendering."""
@@ -208,6 +255,7 @@ class OpenLoopRun:
         try:
             for k in steps:
                 self.advance_to((k + 1) * self.step_seconds)
+                self._robot_stats()
                 frame = self.capture() if capture_frames else None
                 if frame is not None:
                     frames.append(frame)
@@ -233,6 +281,7 @@ class OpenLoopRun:
         if error is not None:
             report = SuccessReport(False, {"error": error})
         return RunResult(
+            robot=self.robot,
             scenario=self.scenario,
             frames=frames,
             final=final,

@@ -116,6 +116,7 @@ class ClothStationHandles:
     X_WCamera: RigidTransform
     X_WO: RigidTransform
     X_WCloth: RigidTransform
+    initialize: object = None  # callable(station, station_context) or None
 
 
 _MATERIALS = {
@@ -275,7 +276,8 @@ def _add_clip(
     plant: MultibodyPlant,
     scenario: Scenario,
     side: str,
-    anchor,
+    holder,
+    X_HolderClip: RigidTransform,
     cloth_id,
     X_WC: RigidTransform,
     p_W0: np.ndarray,
@@ -299,7 +301,7 @@ def _add_clip(
     X_WClip = RigidTransform(p_W0)
     plant.SetDefaultFloatingBaseBodyPose(clip, X_WClip)
     plant.gravity_field().set_enabled(instance, False)
-    weld_id = plant.AddWeldConstraint(anchor, RigidTransform(), clip, RigidTransform())
+    weld_id = plant.AddWeldConstraint(holder, X_HolderClip, clip, RigidTransform())
     # Capture region: a g x g square reaching inwards from the corner.
     g = cloth.grasp_size
     sign = -1.0 if side == "left" else 1.0
@@ -319,14 +321,16 @@ def _add_clip(
 def MakeClothStation(scenario: Scenario, *, meshcat=None) -> Diagram:
     """Builds the simulated cloth station for `scenario` (see module docstring).
 
+    With `grippers.kind: panda` the grippers are two Franka Pandas driven by
+    one bimanual differential-IK controller inside the station; the ports are
+    the same, plus each arm's joint positions and the IK saturation flags.
+    Call `InitializeStation(station, station_context)` on a new context (the
+    runners here do) before simulating.
+
     Args:
         scenario: a validated Scenario.
         meshcat: optional pydrake Meshcat to visualise in.
     """
-    if scenario.grippers.kind != "anchors":
-        raise NotImplementedError(
-            f"grippers.kind {scenario.grippers.kind!r} is not built yet"
-        )
     builder = DiagramBuilder()
     plant, scene_graph = AddMultibodyPlant(scenario.plant_config, builder)
     plant.set_name("plant")
@@ -336,33 +340,40 @@ def MakeClothStation(scenario: Scenario, *, meshcat=None) -> Diagram:
     X_WO = _add_table_and_object(plant, scenario)
     cloth_id, X_WC = _add_cloth(plant, scenario, mesh)
     corners = GraspCorners(scenario)
-    anchors, weld_ids, clips = {}, [], []
+    dt = scenario.plant_config.time_step
+    weld_ids, clips = [], []
+    if scenario.grippers.kind == "panda":
+        from fabric_imitation.diagrams.panda import AddPandaGrippers
+
+        pandas = AddPandaGrippers(builder, plant, scene_graph, scenario, corners)
+        holders = pandas.tcp_bodies
+        X_holder_clip = pandas.X_TcpClip
+    else:
+        anchors = {
+            side: _add_anchor(plant, scenario, side, corners[side]) for side in SIDES
+        }
+        holders = {side: anchors[side][1] for side in SIDES}
+        X_holder_clip = {side: RigidTransform() for side in SIDES}
     for side in SIDES:
-        instance, anchor = _add_anchor(plant, scenario, side, corners[side])
-        anchors[side] = instance
         weld_id, clip = _add_clip(
-            plant, scenario, side, anchor, cloth_id, X_WC, corners[side]
+            plant,
+            scenario,
+            side,
+            holders[side],
+            X_holder_clip[side],
+            cloth_id,
+            X_WC,
+            corners[side],
         )
         weld_ids.append(weld_id)
         clips.append(clip)
     plant.Finalize()
 
-    dt = scenario.plant_config.time_step
-    for side in SIDES:
-        interpolator = builder.AddNamedSystem(
-            f"{side}.target_interpolator",
-            StateInterpolatorWithDiscreteDerivative(3, dt, True),
-        )
-        builder.Connect(
-            interpolator.get_output_port(),
-            plant.get_desired_state_input_port(anchors[side]),
-        )
-        builder.ExportInput(interpolator.get_input_port(), StationPorts.ee_target(side))
-        demux = builder.AddNamedSystem(f"{side}.state_demux", Demultiplexer([3, 3]))
-        builder.Connect(
-            plant.get_state_output_port(anchors[side]), demux.get_input_port()
-        )
-        builder.ExportOutput(demux.get_output_port(0), StationPorts.ee_measured(side))
+    initialize = None
+    if scenario.grippers.kind == "panda":
+        initialize = pandas.Wire(builder)
+    else:
+        _wire_anchors(builder, plant, {s: anchors[s][0] for s in SIDES}, dt)
 
     latch = builder.AddNamedSystem("release_latch", ReleaseLatch(period=dt))
     builder.ExportInput(latch.GetInputPort("release"), StationPorts.RELEASE)
@@ -413,8 +424,37 @@ def MakeClothStation(scenario: Scenario, *, meshcat=None) -> Diagram:
         X_WCamera=X_WCamera,
         X_WO=X_WO,
         X_WCloth=X_WC,
+        initialize=initialize,
     )
     return station
+
+
+def _wire_anchors(
+    builder: DiagramBuilder, plant: MultibodyPlant, anchors: dict, dt: float
+) -> None:
+    """Position targets -> PD desired states of the anchors' joints."""
+    for side in SIDES:
+        interpolator = builder.AddNamedSystem(
+            f"{side}.target_interpolator",
+            StateInterpolatorWithDiscreteDerivative(3, dt, True),
+        )
+        builder.Connect(
+            interpolator.get_output_port(),
+            plant.get_desired_state_input_port(anchors[side]),
+        )
+        builder.ExportInput(interpolator.get_input_port(), StationPorts.ee_target(side))
+        demux = builder.AddNamedSystem(f"{side}.state_demux", Demultiplexer([3, 3]))
+        builder.Connect(
+            plant.get_state_output_port(anchors[side]), demux.get_input_port()
+        )
+        builder.ExportOutput(demux.get_output_port(0), StationPorts.ee_measured(side))
+
+
+def InitializeStation(station: Diagram, station_context) -> None:
+    """Sets what a new station context needs before simulation (the Panda
+    differential IK's starting joint positions); nothing for anchors."""
+    if station.handles.initialize is not None:
+        station.handles.initialize(station, station_context)
 
 
 def _add_camera(builder: DiagramBuilder, scenario: Scenario, scene_graph):

@@ -117,6 +117,66 @@ GRIPPER_KINDS = ("anchors", "panda")
 
 
 @dc.dataclass
+class PandaArmConfig:
+    # Base pose on the table top: x, y [m], yaw [deg].
+    base: list[float] = dc.field(default_factory=lambda: [-0.30, -0.62, 90.0])
+    # LCM channels of the real driver (hardware station).
+    command_channel: str = "PANDA_LEFT_COMMAND"
+    status_channel: str = "PANDA_LEFT_STATUS"
+
+    def __post_init__(self):
+        _check(len(self.base) == 3, "grippers.panda.*.base", self.base)
+
+
+def _right_arm() -> PandaArmConfig:
+    return PandaArmConfig(
+        base=[0.30, -0.62, 90.0],
+        command_channel="PANDA_RIGHT_COMMAND",
+        status_channel="PANDA_RIGHT_STATUS",
+    )
+
+
+@dc.dataclass
+class PandaConfig:
+    # Registry package that ships the robot description (PyPI
+    # example-robot-data), and the model inside it.
+    package: str = "example-robot-data"
+    model: str = (
+        "package://example-robot-data/robots/panda_description/urdf/"
+        "panda_collision.urdf"
+    )
+    left: PandaArmConfig = dc.field(default_factory=PandaArmConfig)
+    right: PandaArmConfig = dc.field(default_factory=_right_arm)
+    # Joint PD gains of the simulated position-controlled driver.
+    kp: float = 2000.0
+    kd: float = 100.0
+    # Differential IK: largest hand speed [m/s] and fraction of the joint
+    # velocity limits it may use.
+    max_hand_speed: float = 0.3
+    joint_velocity_scale: float = 0.8
+    # LCM bus of the real drivers and the camera (hardware station).
+    lcm_url: str = "udpm://239.255.76.67:7667?ttl=0"
+    camera_channel: str = "DRAKE_RGBD_CAMERA_IMAGES_camera"
+    # Hardware: seconds without a status message before the station fails.
+    status_timeout: float = 1.0
+
+    def __post_init__(self):
+        self.left.__post_init__()
+        self.right.__post_init__()
+        _check(self.kp > 0 and self.kd >= 0, "grippers.panda.kp/kd", (self.kp, self.kd))
+        _check(
+            self.max_hand_speed > 0,
+            "grippers.panda.max_hand_speed",
+            self.max_hand_speed,
+        )
+        _check(
+            0 < self.joint_velocity_scale <= 1,
+            "grippers.panda.joint_velocity_scale",
+            self.joint_velocity_scale,
+        )
+
+
+@dc.dataclass
 class GrippersConfig:
     # anchors (x/y/z prismatic bodies, the paper's virtual anchors) or panda.
     kind: str = "anchors"
@@ -127,12 +187,15 @@ class GrippersConfig:
     # Mass [kg] of each clip (the part of a gripper that stays on a released
     # corner) after release; while grasped it has the anchor's mass.
     clip_mass: float = 0.005
+    # Used when kind is panda.
+    panda: PandaConfig = dc.field(default_factory=PandaConfig)
 
     def __post_init__(self):
         _check(self.kind in GRIPPER_KINDS, "grippers.kind", self.kind)
         _check(self.anchor_mass > 0, "grippers.anchor_mass", self.anchor_mass)
         _check(self.kp > 0 and self.kd >= 0, "grippers.kp/kd", (self.kp, self.kd))
         _check(self.clip_mass > 0, "grippers.clip_mass", self.clip_mass)
+        self.panda.__post_init__()
 
 
 @dc.dataclass

@@ -7,28 +7,36 @@ import sys
 
 import numpy as np
 import pytest
-
 from fabric_imitation.diagrams.imitation import DEFAULT_DEMOS, DEFAULT_PRIORS, Imitate
 from fabric_imitation.learning.errors import InputError
 from fabric_imitation.learning.mpc import MpcConfig
 from fabric_imitation.scenarios.loader import LoadScenario
 
-TINY_MPC = MpcConfig(num_samples=40, horizon=2, elites=5, max_iterations=1,
-                     step_cap_factor=0.0)
+TINY_MPC = MpcConfig(
+    num_samples=40, horizon=2, elites=5, max_iterations=1, step_cap_factor=0.0
+)
 
 
 def test_imitate_smoke_run_with_tiny_settings():
-    scenario = LoadScenario(scenario_name="box",
-                            scenario_text="cloth: {resolution: [6, 6, 2]}\n"
-                            "motion: {settle_seconds: 0.2}")
-    summary = Imitate(scenario=scenario, scenario_name="box", mpc_config=TINY_MPC,
-                      progress=False)
+    scenario = LoadScenario(
+        scenario_name="box",
+        scenario_text="cloth: {resolution: [6, 6, 2]}\nmotion: {settle_seconds: 0.2}",
+    )
+    summary = Imitate(
+        scenario=scenario, scenario_name="box", mpc_config=TINY_MPC, progress=False
+    )
     assert summary["error"] is None
     assert summary["termination"] in ("step cap", "classifier", "infeasible")
     assert 1 <= summary["steps"] <= 5
     assert summary["executed_violations"] == 0
-    for key in ("success", "final_iou", "final_chamfer", "mpc_step_ms",
-                "demo_to_first_action_s", "wall_seconds"):
+    for key in (
+        "success",
+        "final_iou",
+        "final_chamfer",
+        "mpc_step_ms",
+        "demo_to_first_action_s",
+        "wall_seconds",
+    ):
         assert key in summary
     assert 0.0 <= summary["final_iou"] <= 1.0
 
@@ -42,9 +50,12 @@ def test_shipped_priors_and_demos_exist():
 
 
 def _cli(*args):
-    return subprocess.run([sys.executable, "-m", "fabric_imitation.diagrams.cli",
-                           "imitate", *args], capture_output=True, text=True,
-                          timeout=300)
+    return subprocess.run(
+        [sys.executable, "-m", "fabric_imitation.diagrams.cli", "imitate", *args],
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
 
 
 def test_missing_demo_directory(tmp_path):
@@ -64,20 +75,29 @@ def test_demo_with_an_empty_mask_frame(tmp_path):
     manifest["files"].pop("observations.npz")  # skip the checksum, keep the check
     (demo / "manifest.json").write_text(json.dumps(manifest))
     with pytest.raises(InputError, match=r"fabric mask is empty in frame\(s\) \[3\]"):
-        Imitate(scenario=LoadScenario(scenario_name="box"), scenario_name="box",
-                demo_dir=demo, progress=False)
+        Imitate(
+            scenario=LoadScenario(scenario_name="box"),
+            scenario_name="box",
+            demo_dir=demo,
+            progress=False,
+        )
 
 
 def test_demo_from_another_camera():
-    scenario = LoadScenario(scenario_name="box", scenario_text=(
-        "camera: {width: 160, height: 160, focal: !FovDegrees {y: 40.0}}"))
+    scenario = LoadScenario(
+        scenario_name="box",
+        scenario_text=(
+            "camera: {width: 160, height: 160, focal: !FovDegrees {y: 40.0}}"
+        ),
+    )
     with pytest.raises(InputError, match="another camera"):
         Imitate(scenario=scenario, scenario_name="box", progress=False)
 
 
 def test_priors_that_do_not_match_the_camera_image_size():
-    scenario = LoadScenario(scenario_name="box",
-                            scenario_text="camera: {width: 120, height: 120}")
+    scenario = LoadScenario(
+        scenario_name="box", scenario_text="camera: {width: 120, height: 120}"
+    )
     with pytest.raises(InputError, match=r"trained on \(160, 160\) images"):
         Imitate(scenario=scenario, scenario_name="box", progress=False)
 
@@ -90,5 +110,9 @@ def test_object_pose_outside_the_workspace():
 
 def test_demo_of_another_task():
     with pytest.raises(InputError, match="shows the 'hang' task"):
-        Imitate(scenario=LoadScenario(scenario_name="box"), scenario_name="box",
-                demo_dir=DEFAULT_DEMOS / "hang", progress=False)
+        Imitate(
+            scenario=LoadScenario(scenario_name="box"),
+            scenario_name="box",
+            demo_dir=DEFAULT_DEMOS / "hang",
+            progress=False,
+        )

@@ -1,0 +1,550 @@
+"""Two Franka Panda arms for the cloth station: model loading from a registry
+package, initial configurations by IK, and bimanual differential IK.
+
+The arms' description comes from the PyPI package example-robot-data
+(`panda_description`); Drake's own `drake_models` Panda is downloaded at run
+time and is not used.
+"""
+
+import dataclasses as dc
+import logging
+import math
+from importlib import metadata
+from pathlib import Path
+
+import numpy as np
+from fabric_imitation.learning.errors import InputError
+from fabric_imitation.scenarios.schema import PandaConfig, Scenario
+from pydrake.common.value import AbstractValue
+from pydrake.math import RigidTransform, RollPitchYaw, RotationMatrix
+from pydrake.multibody.inverse_kinematics import (
+    DifferentialInverseKinematicsController,
+    DifferentialInverseKinematicsSystem,
+    InverseKinematics,
+)
+from pydrake.multibody.math import SpatialVelocity
+from pydrake.multibody.parsing import Parser
+from pydrake.multibody.plant import MultibodyPlant
+from pydrake.multibody.tree import PdControllerGains
+from pydrake.planning import (
+    DofMask,
+    RobotDiagramBuilder,
+    SceneGraphCollisionChecker,
+)
+from pydrake.solvers import Solve
+from pydrake.systems.framework import BasicVector, BusValue, LeafSystem
+from pydrake.systems.primitives import (
+    ConstantVectorSource,
+    Demultiplexer,
+    StateInterpolatorWithDiscreteDerivative,
+)
+
+ARM_JOINTS = 7
+FINGER_OPENING = 0.02  # [m] each finger, held by its PD actuator
+TCP_FRAME = "panda_hand_tcp"
+SIDES = ("left", "right")
+_LOG = logging.getLogger("fabric_imitation.panda")
+
+
+def InstanceName(side: str) -> str:
+    return f"{side}_panda"
+
+
+def PackagePath(package: str) -> Path:
+    """Share directory of a robot-description registry package (cmeel layout:
+    site-packages/cmeel.prefix/share/<package>), which its URDFs address as
+    package://<package>/..."""
+    try:
+        dist = metadata.distribution(package)
+    except metadata.PackageNotFoundError:
+        raise InputError(f"robot package {package!r} is not installed") from None
+    path = Path(dist.locate_file(f"cmeel.prefix/share/{package}"))
+    if not path.is_dir():
+        raise InputError(f"robot package {package!r} has no share/{package} folder")
+    return path
+
+
+def AddPandaModels(plant: MultibodyPlant, config: PandaConfig) -> dict:
+    """Parses both arms into `plant`, welds their bases, renames them
+    left_panda / right_panda; returns {side: model instance}."""
+    parser = Parser(plant)
+    if not parser.package_map().Contains(config.package):
+        parser.package_map().Add(config.package, str(PackagePath(config.package)))
+    instances = {}
+    for side in SIDES:
+        try:
+            (instance,) = parser.AddModels(url=config.model)
+        except Exception as e:  # noqa: BLE001 (parser errors are bad input here)
+            raise InputError(
+                f"cannot load robot model {config.model!r}: "
+                f"{' '.join(str(e).split())[:160]}"
+            ) from None
+        plant.RenameModelInstance(instance, InstanceName(side))
+        base = getattr(config, side).base
+        X_WB = RigidTransform(
+            RotationMatrix.MakeZRotation(math.radians(base[2])), [base[0], base[1], 0.0]
+        )
+        plant.WeldFrames(
+            plant.world_frame(), plant.GetFrameByName("panda_link0", instance), X_WB
+        )
+        instances[side] = instance
+    return instances
+
+
+def HandOrientation(side: str, base_yaw_deg: float) -> RotationMatrix:
+    """The fixed hand orientation: pointing down, fingers across the arm."""
+    return RotationMatrix(
+        RollPitchYaw(math.pi, 0.0, math.radians(base_yaw_deg) - math.pi / 4)
+    )
+
+
+def ArmJointNames() -> list[str]:
+    return [f"panda_joint{i}" for i in range(1, ARM_JOINTS + 1)]
+
+
+def SolveHandPosition(
+    plant: MultibodyPlant,
+    instance,
+    p_WG: np.ndarray,
+    R_WG: RotationMatrix,
+    q_seed: np.ndarray,
+) -> np.ndarray:
+    """Full-plant positions with the hand's TCP at p_WG, orientation R_WG."""
+    context = plant.CreateDefaultContext()
+    ik = InverseKinematics(plant, context, with_joint_limits=True)
+    frame = plant.GetFrameByName(TCP_FRAME, instance)
+    ik.AddPositionConstraint(
+        frame, np.zeros(3), plant.world_frame(), p_WG - 1e-4, p_WG + 1e-4
+    )
+    ik.AddOrientationConstraint(
+        frame, RotationMatrix(), plant.world_frame(), R_WG, 1e-3
+    )
+    prog = ik.get_mutable_prog()
+    q = ik.q()
+    prog.AddQuadraticErrorCost(np.eye(len(q)) * 1e-2, q_seed, q)
+    prog.SetInitialGuess(q, q_seed)
+    result = Solve(prog)
+    if not result.is_success():
+        raise InputError(
+            f"the {plant.GetModelInstanceName(instance)} hand cannot "
+            f"reach {np.round(p_WG, 3).tolist()} pointing down"
+        )
+    return result.GetSolution(q)
+
+
+def HomeSeed(plant: MultibodyPlant) -> np.ndarray:
+    """A comfortable seed: elbow up, hand down."""
+    q = plant.GetPositions(plant.CreateDefaultContext()).copy()
+    seed = [0.0, 0.3, 0.0, -2.0, 0.0, 2.3, 0.0]
+    for side in SIDES:
+        instance = plant.GetModelInstanceByName(InstanceName(side))
+        for name, value in zip(ArmJointNames(), seed, strict=True):
+            joint = plant.GetJointByName(name, instance)
+            q[joint.position_start()] = value
+    return q
+
+
+def AddArmActuators(plant: MultibodyPlant, instance, config: PandaConfig) -> None:
+    """PD-controlled actuators: the simulated position-controlled driver
+    (arm joints) and fingers held open. Gravity is off for the arms: the real
+    driver compensates it."""
+    for name in ArmJointNames() + ["panda_finger_joint1", "panda_finger_joint2"]:
+        joint = plant.GetJointByName(name, instance)
+        actuator = plant.AddJointActuator(f"{name}_actuator", joint, 1000.0)
+        actuator.set_controller_gains(PdControllerGains(p=config.kp, d=config.kd))
+    plant.gravity_field().set_enabled(instance, False)
+
+
+@dc.dataclass
+class BimanualIk:
+    """The control-side differential IK of both arms (its own plant)."""
+
+    controller: DifferentialInverseKinematicsController
+    robot: object  # RobotDiagram of the two arms only
+    frame_names: dict  # side -> scoped TCP frame name
+    arm_position_indices: dict  # side -> indices in the control plant's q
+
+
+def MakeBimanualIk(scenario: Scenario, dt: float) -> BimanualIk:
+    """One DifferentialInverseKinematicsController for both hands, on a
+    control-only model of the two arms (no cloth, no table)."""
+    config = scenario.grippers.panda
+    builder = RobotDiagramBuilder(time_step=0.0)
+    plant = builder.plant()
+    instances = AddPandaModels(plant, config)
+    plant.Finalize()
+    robot = builder.Build()
+    checker = SceneGraphCollisionChecker(
+        model=robot,
+        robot_model_instances=list(instances.values()),
+        edge_step_size=0.05,
+        env_collision_padding=0.0,
+    )
+    recipe = DifferentialInverseKinematicsSystem.Recipe()
+    recipe.AddIngredient(
+        DifferentialInverseKinematicsSystem.LeastSquaresCost(
+            DifferentialInverseKinematicsSystem.LeastSquaresCost.Config()
+        )
+    )
+    recipe.AddIngredient(
+        DifferentialInverseKinematicsSystem.JointCenteringCost(
+            DifferentialInverseKinematicsSystem.JointCenteringCost.Config()
+        )
+    )
+    speed = config.max_hand_speed
+    limit = SpatialVelocity(w=np.full(3, 2.0), v=np.full(3, speed))
+    nq = plant.num_positions()
+    system = DifferentialInverseKinematicsSystem(
+        recipe, "world", checker, DofMask(nq, True), dt, 1.0, limit
+    )
+    controller = DifferentialInverseKinematicsController(system, [])
+    names, indices = {}, {}
+    for side, instance in instances.items():
+        names[side] = (
+            plant.GetFrameByName(TCP_FRAME, instance).scoped_name().to_string()
+        )
+        indices[side] = [
+            plant.GetJointByName(n, instance).position_start() for n in ArmJointNames()
+        ]
+    return BimanualIk(
+        controller=controller,
+        robot=robot,
+        frame_names=names,
+        arm_position_indices=indices,
+    )
+
+
+class HandTargets(LeafSystem):
+    """Hand position targets -> desired TCP poses (fixed downward orientation)
+    for the differential IK, kept inside each arm's reach and above the table.
+
+    A target outside is moved to the nearest reachable point; the
+    ``saturated`` output (1 per hand, from state) and a log line report it.
+
+    Input ports: ``left.ee_target``, ``right.ee_target`` (3, world).
+    Output ports: ``desired_poses`` (BusValue of RigidTransform keyed by the
+    scoped TCP frame names), ``saturated`` (2).
+    """
+
+    def __init__(
+        self,
+        *,
+        frame_names: dict,
+        orientations: dict,
+        shoulders: dict,
+        reach: float,
+        min_height: float,
+        period: float,
+    ):
+        super().__init__()
+        self._names = frame_names
+        self._R = orientations
+        self._shoulders = {k: np.asarray(v) for k, v in shoulders.items()}
+        self._reach = reach
+        self._min_z = min_height
+        self._targets = {
+            side: self.DeclareVectorInputPort(f"{side}.ee_target", 3) for side in SIDES
+        }
+        self._saturated = self.DeclareDiscreteState(2)
+        self.DeclarePeriodicDiscreteUpdateEvent(period, 0.0, self._check)
+        self.DeclareAbstractOutputPort(
+            "desired_poses", lambda: AbstractValue.Make(BusValue()), self._calc
+        )
+        self.DeclareStateOutputPort("saturated", self._saturated)
+
+    def Clamp(self, side: str, p: np.ndarray) -> np.ndarray:
+        c = self._shoulders[side]
+        d = p - c
+        n = np.linalg.norm(d)
+        q = c + d * (self._reach / n) if n > self._reach else np.array(p, float)
+        q[2] = max(q[2], self._min_z)
+        return q
+
+    def _calc(self, context, output) -> None:
+        bus = output.get_mutable_value()
+        for side in SIDES:
+            p = self.Clamp(side, self._targets[side].Eval(context))
+            bus.Set(
+                self._names[side], AbstractValue.Make(RigidTransform(self._R[side], p))
+            )
+
+    def _check(self, context, discrete_state):
+        flags = []
+        before = context.get_discrete_state(self._saturated).value()
+        for k, side in enumerate(SIDES):
+            p = self._targets[side].Eval(context)
+            hit = float(np.linalg.norm(self.Clamp(side, p) - p) > 1e-9)
+            if hit and not before[k]:
+                _LOG.warning(
+                    "%s hand target %s is out of reach; saturated",
+                    side,
+                    np.round(p, 3).tolist(),
+                )
+            flags.append(hit)
+        discrete_state.get_mutable_vector(self._saturated).SetFromVector(flags)
+
+
+class ArmStates(LeafSystem):
+    """Stacks the two arms' plant states [q_l, v_l], [q_r, v_r] into the
+    control plant's order [q_l, q_r, v_l, v_r].
+
+    Input ports: ``left_state``, ``right_state`` (2n each).
+    Output ports: ``state`` (4n).
+    """
+
+    def __init__(self, n: int):
+        super().__init__()
+        self._n = n
+        self._l = self.DeclareVectorInputPort("left_state", 2 * n)
+        self._r = self.DeclareVectorInputPort("right_state", 2 * n)
+        self.DeclareVectorOutputPort("state", 4 * n, self._calc)
+
+    def _calc(self, context, output: BasicVector) -> None:
+        n = self._n
+        left, right = self._l.Eval(context), self._r.Eval(context)
+        output.SetFromVector(np.concatenate([left[:n], right[:n], left[n:], right[n:]]))
+
+
+class ArmCommand(LeafSystem):
+    """One arm's joint position command from the controller's full command,
+    with the fingers held open: [q_arm (7), fingers (2)].
+
+    Input ports: ``commanded_position`` (control plant positions).
+    Output ports: ``position`` (9).
+    """
+
+    def __init__(self, *, indices: list[int], nq: int):
+        super().__init__()
+        self._idx = np.asarray(indices)
+        self._q = self.DeclareVectorInputPort("commanded_position", nq)
+        self.DeclareVectorOutputPort("position", ARM_JOINTS + 2, self._calc)
+
+    def _calc(self, context, output: BasicVector) -> None:
+        q = self._q.Eval(context)
+        output.SetFromVector(np.concatenate([q[self._idx], [FINGER_OPENING] * 2]))
+
+
+class TcpPositions(LeafSystem):
+    """World positions of the two hands' TCPs from the plant's body poses.
+
+    Input ports: ``body_poses`` (the plant's list of RigidTransform).
+    Output ports: ``left``, ``right`` (3).
+    """
+
+    def __init__(self, *, body_indices: dict):
+        super().__init__()
+        self._idx = body_indices
+        self._poses = self.DeclareAbstractInputPort(
+            "body_poses", AbstractValue.Make([RigidTransform()])
+        )
+        for side in SIDES:
+            self.DeclareVectorOutputPort(
+                side,
+                3,
+                lambda c, o, side=side: o.SetFromVector(
+                    self._poses.Eval(c)[self._idx[side]].translation()
+                ),
+            )
+
+
+def SolveHandsAt(
+    robot_plant: MultibodyPlant, targets: dict, orientations: dict
+) -> np.ndarray:
+    """Control-plant positions with each hand's TCP at targets[side]."""
+    q = HomeSeed(robot_plant)
+    for side in SIDES:
+        instance = robot_plant.GetModelInstanceByName(InstanceName(side))
+        q = SolveHandPosition(
+            robot_plant, instance, targets[side], orientations[side], q
+        )
+    return q
+
+
+@dc.dataclass
+class PandaGrippers:
+    """Arms added to a station plant; `Wire` connects them after Finalize."""
+
+    scenario: Scenario
+    plant: MultibodyPlant
+    scene_graph: object
+    instances: dict
+    tcp_bodies: dict
+    X_TcpClip: dict
+    ik: BimanualIk
+    q0: np.ndarray  # control-plant positions at the grasp corners
+    orientations: dict
+
+    def Wire(self, builder):
+        """Targets -> HandTargets -> diff IK -> joint PD; exports the ports.
+        Returns the context initializer."""
+        from fabric_imitation.diagrams.station import StationPorts
+
+        plant, scenario = self.plant, self.scenario
+        dt = scenario.plant_config.time_step
+        config = scenario.grippers.panda
+        robot_plant = self.ik.robot.plant()
+        # Default joint angles: the IK solution at the grasp corners.
+        for side, instance in self.instances.items():
+            robot_instance = robot_plant.GetModelInstanceByName(InstanceName(side))
+            for name in ArmJointNames():
+                q = self.q0[
+                    robot_plant.GetJointByName(name, robot_instance).position_start()
+                ]
+                plant.GetJointByName(name, instance).set_default_angle(q)
+            for name in ("panda_finger_joint1", "panda_finger_joint2"):
+                plant.GetJointByName(name, instance).set_default_translation(
+                    FINGER_OPENING
+                )
+        shoulders = {}
+        for side in SIDES:
+            base = getattr(config, side).base
+            shoulders[side] = np.array([base[0], base[1], 0.333])
+        targets = builder.AddNamedSystem(
+            "hand_targets",
+            HandTargets(
+                frame_names=self.ik.frame_names,
+                orientations=self.orientations,
+                shoulders=shoulders,
+                reach=0.80,
+                min_height=0.0,
+                period=dt,
+            ),
+        )
+        controller = builder.AddNamedSystem("diff_ik", self.ik.controller)
+        builder.Connect(
+            targets.GetOutputPort("desired_poses"),
+            controller.GetInputPort("desired_poses"),
+        )
+        stack = builder.AddNamedSystem("arm_states", ArmStates(ARM_JOINTS + 2))
+        for side in SIDES:
+            builder.Connect(
+                plant.get_state_output_port(self.instances[side]),
+                stack.GetInputPort(f"{side}_state"),
+            )
+        builder.Connect(
+            stack.GetOutputPort("state"), controller.GetInputPort("estimated_state")
+        )
+        nominal = builder.AddNamedSystem(
+            "nominal_posture", ConstantVectorSource(self.q0)
+        )
+        builder.Connect(
+            nominal.get_output_port(), controller.GetInputPort("nominal_posture")
+        )
+        nq = robot_plant.num_positions()
+        tcp = builder.AddNamedSystem(
+            "tcp_positions",
+            TcpPositions(
+                body_indices={side: self.tcp_bodies[side].index() for side in SIDES}
+            ),
+        )
+        builder.Connect(
+            plant.get_body_poses_output_port(), tcp.GetInputPort("body_poses")
+        )
+        for side in SIDES:
+            builder.ExportInput(
+                targets.GetInputPort(f"{side}.ee_target"), StationPorts.ee_target(side)
+            )
+            command = builder.AddNamedSystem(
+                f"{side}.arm_command",
+                ArmCommand(indices=self.ik.arm_position_indices[side], nq=nq),
+            )
+            builder.Connect(
+                controller.GetOutputPort("commanded_position"),
+                command.GetInputPort("commanded_position"),
+            )
+            interpolator = builder.AddNamedSystem(
+                f"{side}.joint_interpolator",
+                StateInterpolatorWithDiscreteDerivative(ARM_JOINTS + 2, dt, True),
+            )
+            builder.Connect(
+                command.GetOutputPort("position"), interpolator.get_input_port()
+            )
+            builder.Connect(
+                interpolator.get_output_port(),
+                plant.get_desired_state_input_port(self.instances[side]),
+            )
+            builder.ExportOutput(
+                tcp.GetOutputPort(side), StationPorts.ee_measured(side)
+            )
+            arm_q = builder.AddNamedSystem(
+                f"{side}.arm_positions", Demultiplexer([ARM_JOINTS, 2, ARM_JOINTS + 2])
+            )
+            builder.Connect(
+                plant.get_state_output_port(self.instances[side]),
+                arm_q.get_input_port(),
+            )
+            builder.ExportOutput(
+                arm_q.get_output_port(0), f"{InstanceName(side)}.position_measured"
+            )
+            cmd_q = builder.AddNamedSystem(
+                f"{side}.arm_commanded", Demultiplexer([ARM_JOINTS, 2])
+            )
+            builder.Connect(command.GetOutputPort("position"), cmd_q.get_input_port())
+            builder.ExportOutput(
+                cmd_q.get_output_port(0), f"{InstanceName(side)}.position_commanded"
+            )
+        builder.ExportOutput(
+            targets.GetOutputPort("saturated"), "hands.target_saturated"
+        )
+        q0 = self.q0.copy()
+
+        def initialize(station, station_context):
+            ctrl = station.GetSubsystemByName("diff_ik")
+            ctrl.set_initial_position(
+                station.GetMutableSubsystemContext(ctrl, station_context), q0
+            )
+
+        return initialize
+
+
+def AddPandaGrippers(
+    builder, plant: MultibodyPlant, scene_graph, scenario: Scenario, corners: dict
+) -> PandaGrippers:
+    """Adds both arms to the station plant (before Finalize): models, PD
+    actuators of the simulated driver, no gravity (the driver compensates it);
+    solves the grasp configuration on the control model."""
+    config = scenario.grippers.panda
+    dt = scenario.plant_config.time_step
+    ik = MakeBimanualIk(scenario, dt)
+    orientations = {
+        side: HandOrientation(side, getattr(config, side).base[2]) for side in SIDES
+    }
+    q0 = SolveHandsAt(ik.robot.plant(), corners, orientations)
+    instances = AddPandaModels(plant, config)
+    tcp_bodies, X_TcpClip = {}, {}
+    for side, instance in instances.items():
+        AddArmActuators(plant, instance, config)
+        tcp_bodies[side] = plant.GetBodyByName(TCP_FRAME, instance)
+        # The clip stays world-aligned at the corner while the hand points down.
+        X_TcpClip[side] = RigidTransform(orientations[side].inverse(), np.zeros(3))
+    _filter_arm_collisions(plant, scene_graph, instances)
+    return PandaGrippers(
+        scenario=scenario,
+        plant=plant,
+        scene_graph=scene_graph,
+        instances=instances,
+        tcp_bodies=tcp_bodies,
+        X_TcpClip=X_TcpClip,
+        ik=ik,
+        q0=q0,
+        orientations=orientations,
+    )
+
+
+def _filter_arm_collisions(plant, scene_graph, instances) -> None:
+    """The arms touch nothing (contact with the cloth and table is not
+    modelled; the safe action set keeps the hands clear of the object)."""
+    from pydrake.geometry import CollisionFilterDeclaration, GeometrySet
+
+    arm_bodies = [
+        b
+        for inst in instances.values()
+        for b in (plant.get_body(i) for i in plant.GetBodyIndices(inst))
+    ]
+    arm = GeometrySet(
+        [g for b in arm_bodies for g in plant.GetCollisionGeometriesForBody(b)]
+    )
+    everything = GeometrySet(scene_graph.model_inspector().GetAllGeometryIds())
+    scene_graph.collision_filter_manager().Apply(
+        CollisionFilterDeclaration().ExcludeBetween(arm, everything)
+    )
