@@ -517,7 +517,7 @@ def AddPandaGrippers(
         tcp_bodies[side] = plant.GetBodyByName(TCP_FRAME, instance)
         # The clip stays world-aligned at the corner while the hand points down.
         X_TcpClip[side] = RigidTransform(orientations[side].inverse(), np.zeros(3))
-    _filter_arm_collisions(plant, scene_graph, instances)
+    FilterArmCollisions(plant, scene_graph, instances)
     return PandaGrippers(
         scenario=scenario,
         plant=plant,
@@ -531,7 +531,7 @@ def AddPandaGrippers(
     )
 
 
-def _filter_arm_collisions(plant, scene_graph, instances) -> None:
+def FilterArmCollisions(plant, scene_graph, instances) -> None:
     """The arms touch nothing (contact with the cloth and table is not
     modelled; the safe action set keeps the hands clear of the object)."""
     from pydrake.geometry import CollisionFilterDeclaration, GeometrySet

@@ -23,6 +23,7 @@ import dataclasses as dc
 
 import numpy as np
 from fabric_imitation.diagrams.cloth_mesh import ClothMesh, MakeClothMesh
+from fabric_imitation.learning.errors import InputError
 from fabric_imitation.scenarios.schema import Scenario, yaw_rad
 from fabric_imitation.systems.station_parts import (
     ClothGroundTruth,
@@ -318,8 +319,13 @@ def _add_clip(
     return weld_id, clip
 
 
-def MakeClothStation(scenario: Scenario, *, meshcat=None) -> Diagram:
-    """Builds the simulated cloth station for `scenario` (see module docstring).
+def MakeClothStation(
+    scenario: Scenario, *, meshcat=None, hardware: bool = False, lcm=None
+) -> Diagram:
+    """Builds the cloth station for `scenario` (see module docstring).
+
+    With `hardware=True` (Panda grippers only) the same ports are made of LCM
+    drivers (diagrams/hardware.py) on `lcm` (default: the scenario's bus).
 
     With `grippers.kind: panda` the grippers are two Franka Pandas driven by
     one bimanual differential-IK controller inside the station; the ports are
@@ -331,6 +337,12 @@ def MakeClothStation(scenario: Scenario, *, meshcat=None) -> Diagram:
         scenario: a validated Scenario.
         meshcat: optional pydrake Meshcat to visualise in.
     """
+    if hardware:
+        if scenario.grippers.kind != "panda":
+            raise InputError("a hardware station needs grippers.kind: panda")
+        from fabric_imitation.diagrams.hardware import MakeHardwareClothStation
+
+        return MakeHardwareClothStation(scenario, lcm=lcm)
     builder = DiagramBuilder()
     plant, scene_graph = AddMultibodyPlant(scenario.plant_config, builder)
     plant.set_name("plant")
