@@ -21,7 +21,7 @@ from fabric_imitation.learning.state import world_to_object
 from fabric_imitation.scenarios.loader import LoadScenario
 from fabric_imitation.scenarios.schema import Scenario, yaw_rad
 
-DEFAULT_SCENARIOS = ("prior", "box", "hang", "box_big")
+DEFAULT_SCENARIOS = ("prior", "box", "hang", "box_big", "box_panda", "hang_panda")
 # A vertex may sink this far [m] into the table or the object (contact is
 # compliant; the slab is 4 mm thick) before the check fails.
 PENETRATION_TOLERANCE = 0.006

@@ -1,0 +1,176 @@
+"""Two Franka Pandas: ports, hand tracking in simulation and over an
+in-process LCM loop, joint limits under random targets, bad input."""
+
+import numpy as np
+import pytest
+from pydrake.lcm import DrakeLcm
+from pydrake.systems.analysis import Simulator
+from pydrake.systems.framework import DiagramBuilder
+
+from fabric_imitation.diagrams.hardware import MakeSimulatedPandaDrivers
+from fabric_imitation.diagrams.station import (
+    GraspCorners,
+    InitializeStation,
+    MakeClothStation,
+)
+from fabric_imitation.learning.errors import InputError
+from fabric_imitation.scenarios.loader import LoadScenario
+from tests.conftest import SMALL_CLOTH
+
+SIDES = ("left", "right")
+
+
+def scenario(name="prior_panda", text=""):
+    return LoadScenario(scenario_name=name, scenario_text=SMALL_CLOTH + text)
+
+
+def port_names(system):
+    return (
+        {system.get_input_port(i).get_name() for i in range(system.num_input_ports())},
+        {
+            system.get_output_port(i).get_name()
+            for i in range(system.num_output_ports())
+        },
+    )
+
+
+def test_simulated_and_hardware_stations_export_the_same_ports():
+    s = scenario("box_panda")
+    sim = MakeClothStation(s)
+    hardware = MakeClothStation(s, hardware=True, lcm=DrakeLcm("memq://"))
+    assert port_names(sim) == port_names(hardware)
+    anchors = MakeClothStation(scenario("box"))
+    # The anchor station's ports are a subset: every controller works with both.
+    assert port_names(anchors)[0] == port_names(sim)[0]
+    assert port_names(anchors)[1] <= port_names(sim)[1]
+
+
+class Rig:
+    def __init__(self, diagram, station):
+        self.diagram, self.station = diagram, station
+        self.simulator = Simulator(diagram)
+        self.context = self.simulator.get_mutable_context()
+        self.station_context = station.GetMyMutableContextFromRoot(self.context)
+        InitializeStation(station, self.station_context)
+        self.corners = GraspCorners(station.handles.scenario)
+        station.GetInputPort("release").FixValue(self.station_context, [0.0])
+        self.target(np.zeros(3))
+
+    def target(self, offset, side=None):
+        for s in (side,) if side else SIDES:
+            self.station.GetInputPort(f"{s}.ee_target").FixValue(
+                self.station_context, self.corners[s] + offset
+            )
+
+    def hand(self, side):
+        return self.station.GetOutputPort(f"{side}.ee_position_measured").Eval(
+            self.station_context
+        )
+
+
+def sim_rig():
+    station = MakeClothStation(scenario())
+    return Rig(station, station)
+
+
+def lcm_rig():
+    s = scenario()
+    lcm = DrakeLcm("memq://")
+    builder = DiagramBuilder()
+    station = builder.AddNamedSystem(
+        "station", MakeClothStation(s, hardware=True, lcm=lcm)
+    )
+    builder.AddNamedSystem("drivers", MakeSimulatedPandaDrivers(s, lcm=lcm))
+    return Rig(builder.Build(), station)
+
+
+@pytest.mark.parametrize("make", [sim_rig, lcm_rig], ids=["simulated", "lcm"])
+def test_hands_follow_a_10cm_target_step_within_5mm(make):
+    rig = make()
+    rig.simulator.AdvanceTo(0.2)
+    for side in SIDES:
+        assert np.linalg.norm(rig.hand(side) - rig.corners[side]) < 0.005
+    rig.target(np.array([0.0, 0.0, 0.10]))
+    rig.simulator.AdvanceTo(1.5)
+    for side in SIDES:
+        error = np.linalg.norm(rig.hand(side) - (rig.corners[side] + [0, 0, 0.10]))
+        assert error < 0.005, (side, error)
+
+
+def test_joint_limits_hold_for_200_random_targets(rng):
+    rig = sim_rig()
+    plant = rig.station.handles.plant
+    limits = {}
+    for side in SIDES:
+        instance = plant.GetModelInstanceByName(f"{side}_panda")
+        joints = [
+            plant.GetJointByName(f"panda_joint{i}", instance) for i in range(1, 8)
+        ]
+        limits[side] = (
+            np.array([j.position_lower_limits()[0] for j in joints]),
+            np.array([j.position_upper_limits()[0] for j in joints]),
+        )
+    saturated = 0
+    t = 0.0
+    for _ in range(200):
+        # Targets across and beyond the workspace, some far out of reach.
+        for side in SIDES:
+            p = rng.uniform([-0.9, -0.9, -0.2], [0.9, 0.9, 1.0])
+            rig.station.GetInputPort(f"{side}.ee_target").FixValue(
+                rig.station_context, p
+            )
+        t += 0.05
+        rig.simulator.AdvanceTo(t)
+        saturated += int(
+            rig.station.GetOutputPort("hands.target_saturated")
+            .Eval(rig.station_context)
+            .sum()
+            > 0
+        )
+        for side in SIDES:
+            q = rig.station.GetOutputPort(f"{side}_panda.position_measured").Eval(
+                rig.station_context
+            )
+            cmd = rig.station.GetOutputPort(f"{side}_panda.position_commanded").Eval(
+                rig.station_context
+            )
+            lo, hi = limits[side]
+            assert np.all(cmd >= lo - 1e-6) and np.all(cmd <= hi + 1e-6)
+            assert np.all(q >= lo - 0.01) and np.all(q <= hi + 0.01)
+    assert saturated > 20  # out-of-reach targets were reported
+
+
+def test_missing_driver_messages_time_out_with_a_clear_error():
+    station = MakeClothStation(
+        scenario("box_panda"), hardware=True, lcm=DrakeLcm("memq://")
+    )
+    rig = Rig(station, station)
+    with pytest.raises(RuntimeError, match="no lcmt_panda_status on PANDA_LEFT_STATUS"):
+        rig.simulator.AdvanceTo(2.0)
+
+
+def test_unknown_robot_package_or_model_is_a_one_line_error():
+    with pytest.raises(InputError, match="robot package 'no-such-robots'"):
+        MakeClothStation(
+            scenario(text="grippers: {kind: panda, panda: {package: no-such-robots}}")
+        )
+    with pytest.raises(InputError, match="cannot load robot model"):
+        MakeClothStation(
+            scenario(
+                text="grippers: {kind: panda, panda: {model: "
+                "'package://example-robot-data/robots/none.urdf'}}"
+            )
+        )
+
+
+@pytest.mark.slow
+def test_demo_record_with_pandas_succeeds_for_the_box(tmp_path):
+    from fabric_imitation.diagrams.demo_record import RecordDemo
+
+    s = LoadScenario(scenario_name="box_panda")
+    summary = RecordDemo(
+        scenario=s, scenario_name="box_panda", out=tmp_path / "d", progress=False
+    )
+    assert summary["success"], summary["success_details"]
+    assert summary["robot"]["min_joint_limit_margin_rad"] > 0.05
+    assert summary["robot"]["max_hand_tracking_error_m"] < 0.01
