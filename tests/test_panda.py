@@ -3,10 +3,6 @@ in-process LCM loop, joint limits under random targets, bad input."""
 
 import numpy as np
 import pytest
-from pydrake.lcm import DrakeLcm
-from pydrake.systems.analysis import Simulator
-from pydrake.systems.framework import DiagramBuilder
-
 from fabric_imitation.diagrams.hardware import MakeSimulatedPandaDrivers
 from fabric_imitation.diagrams.station import (
     GraspCorners,
@@ -15,6 +11,10 @@ from fabric_imitation.diagrams.station import (
 )
 from fabric_imitation.learning.errors import InputError
 from fabric_imitation.scenarios.loader import LoadScenario
+from pydrake.lcm import DrakeLcm
+from pydrake.systems.analysis import Simulator
+from pydrake.systems.framework import DiagramBuilder
+
 from tests.conftest import SMALL_CLOTH
 
 SIDES = ("left", "right")
