@@ -219,7 +219,7 @@ def _worker_episode(job: tuple[str, int, int]) -> tuple[int, int]:
     return episode, len(data["action"])
 
 
-def _episodes_to_do(path: Path, start: int, skip: set[int]) -> Iterator[int]:
+def _episodes_to_do(start: int, skip: set[int]) -> Iterator[int]:
     e = start
     while True:
         if e not in skip:
@@ -355,7 +355,7 @@ def Collect(
         return tracker.done >= transitions
 
     if tracker.done < transitions:
-        episodes = _episodes_to_do(out, start, set(shards))
+        episodes = _episodes_to_do(start, set(shards))
         runner = _run_local if executor == "local" else _run_ray
         runner(scenario_yaml, out, seed, episodes, workers, progress)
     if bar is not None:

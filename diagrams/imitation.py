@@ -7,7 +7,6 @@ offset 0, controller at +1 ms, target integrator at +2 ms) so each uses the
 fresh result of the one before.
 """
 
-import dataclasses as dc
 import sys
 import time
 from pathlib import Path
@@ -210,12 +209,6 @@ def MakeImitationDiagram(
     diagram.targets = targets
     diagram.mpc = mpc
     return diagram
-
-
-@dc.dataclass
-class ImitationResult:
-    summary: dict
-    frames: list
 
 
 def _chamfer(camera, frame_depth, frame_mask, demo: Demo, pose_now, rng) -> float:

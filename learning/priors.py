@@ -7,7 +7,6 @@ or an object frame); f_D and f_I work in each state's canonical frame
 """
 
 import dataclasses as dc
-import json
 from pathlib import Path
 
 import numpy as np
@@ -248,9 +247,3 @@ def load_priors(
     }
     priors.prior_states = blob.get("prior_states")
     return priors
-
-
-def checkpoint_summary(priors: Priors) -> str:
-    return json.dumps(
-        {k: priors.metadata.get(k) for k in ("dataset_fingerprint", "metrics")}
-    )
