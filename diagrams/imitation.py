@@ -270,6 +270,7 @@ def Imitate(
         meshcat=meshcat,
         seed=seed,
     )
+    diagram.mpc.WarmUp(states[0])
     station = diagram.station
     simulator = Simulator(diagram)
     AddReleaseMonitor(simulator, station)

@@ -97,6 +97,16 @@ class Mpc:
         lo = min(max(0, J - 1), self.demo.T - width)
         return lo, lo + width
 
+    @torch.no_grad()
+    def WarmUp(self, S) -> None:
+        """Runs one rollout of the real size so that the compiled IoU is built
+        before the first control step (part of the demo-to-first-action time,
+        not of a control step)."""
+        cfg = self.config
+        S = torch.as_tensor(S, dtype=torch.float32)
+        X = torch.zeros(cfg.num_samples, cfg.horizon, 6)
+        self.rollout(S, X, self._window(0))
+
     def _clip(self, A: torch.Tensor) -> torch.Tensor:
         b = self.safety.max_step
         return A.clamp(-b, b)
