@@ -164,12 +164,13 @@ def test_unknown_robot_package_or_model_is_a_one_line_error():
 
 
 @pytest.mark.slow
-def test_demo_record_with_pandas_succeeds_for_the_box(tmp_path):
+@pytest.mark.parametrize("name", ["box_panda", "hang_panda"])
+def test_demo_record_with_pandas_succeeds(tmp_path, name):
     from fabric_imitation.diagrams.demo_record import RecordDemo
 
-    s = LoadScenario(scenario_name="box_panda")
+    s = LoadScenario(scenario_name=name)
     summary = RecordDemo(
-        scenario=s, scenario_name="box_panda", out=tmp_path / "d", progress=False
+        scenario=s, scenario_name=name, out=tmp_path / "d", progress=False
     )
     assert summary["success"], summary["success_details"]
     assert summary["robot"]["min_joint_limit_margin_rad"] > 0.05
