@@ -18,7 +18,13 @@ from typing import Protocol
 
 import torch
 from fabric_imitation.learning.demo_learning import DemoModel
-from fabric_imitation.learning.safety import SafetyConfig, SafetyContext, valid_actions
+from fabric_imitation.learning.safety import (
+    RULES,
+    SafetyConfig,
+    SafetyContext,
+    rule_violations,
+    valid_actions,
+)
 
 
 class Dynamics(Protocol):
@@ -71,6 +77,9 @@ class MpcResult:
     reward: float
     progress: int
     seconds: float
+    # When infeasible: how many of the last iteration's sampled sequences
+    # break each safety rule at some step (which rule blocked the step).
+    blocked_by: dict[str, int] | None = None
 
 
 class Mpc:
@@ -170,6 +179,20 @@ class Mpc:
         return (discount[:, None] * r).sum(0), cost
 
     @torch.no_grad()
+    def blocking_rules(self, S: torch.Tensor, X: torch.Tensor) -> dict[str, int]:
+        """Number of sequences X (N, h, 6) from S that break each rule at some
+        step of their predicted rollout."""
+        s = S.expand(len(X), *S.shape)
+        broken = {rule: torch.zeros(len(X), dtype=torch.bool) for rule in RULES}
+        for k in range(self.config.horizon):
+            s_next = self.dynamics.forward(s, X[:, k])
+            v = rule_violations(s, X[:, k], self.safety, self.ctx, S_next=s_next)
+            for rule in RULES:
+                broken[rule] |= v[rule]
+            s = s_next
+        return {rule: int(b.sum()) for rule, b in broken.items()}
+
+    @torch.no_grad()
     def solve(
         self, S, *, step: int = 0, seed: int = 0, previous_progress: int | None = None
     ) -> MpcResult:
@@ -244,6 +267,13 @@ class Mpc:
                 break
         feasible = best_a is not None
         action = best_a if feasible else torch.zeros(6)
+        seconds = time.perf_counter() - t0
         return MpcResult(
-            action, feasible, iterations, best_r, J0, time.perf_counter() - t0
+            action,
+            feasible,
+            iterations,
+            best_r,
+            J0,
+            seconds,
+            blocked_by=None if feasible else self.blocking_rules(S, X),
         )

@@ -2,6 +2,7 @@
 controller, success monitor. Torch objects come in through the constructor
 (built elsewhere); per-run values live in the Context."""
 
+import logging
 import time
 
 import numpy as np
@@ -11,6 +12,8 @@ from pydrake.common.value import AbstractValue
 from pydrake.math import RigidTransform
 from pydrake.systems.framework import BasicVector, EventStatus, LeafSystem
 from pydrake.systems.sensors import ImageDepth32F, ImageGrey8U
+
+_LOG = logging.getLogger("fabric_imitation.mpc")
 
 # MpcController status codes (output "status"[1]).
 RUNNING, TERMINATED_CLASSIFIER, TERMINATED_INFEASIBLE, TERMINATED_STEP_CAP = 0, 1, 2, 3
@@ -193,6 +196,13 @@ class MpcController(LeafSystem):
                 steps += 1
             else:
                 code, feasible = TERMINATED_INFEASIBLE, 0.0
+                _LOG.warning(
+                    "no feasible action at step %d (of %d sampled sequences, "
+                    "how many break each rule: %s); releasing",
+                    steps,
+                    self._mpc.config.num_samples,
+                    result.blocked_by,
+                )
         ms = 1000 * (time.perf_counter() - t0)
         discrete_state.get_mutable_vector(self._action).SetFromVector(action_W)
         discrete_state.get_mutable_vector(self._release).SetFromVector(
