@@ -116,6 +116,16 @@ class Mpc:
         X = torch.zeros(cfg.num_samples, cfg.horizon, 6)
         self.rollout(S, X, self._window(0))
 
+    def _predict(self, s: torch.Tensor, a: torch.Tensor) -> torch.Tensor:
+        """f_D(s, a) projected onto the table's upper side (z >= 0 in the
+        object frame): no cloth point can pass through the table, so a
+        prediction below it is a model error, not a move to rule out. Without
+        the projection, f_D's few-millimetre dips under the table for points
+        lying on it broke the workspace rule for every sampled sequence
+        (measured on hang, object turned by 41 degrees)."""
+        nxt = self.dynamics.forward(s, a)
+        return torch.cat([nxt[..., :2], nxt[..., 2:].clamp_min(0.0)], -1)
+
     def _clip(self, A: torch.Tensor) -> torch.Tensor:
         b = self.safety.max_step
         return A.clamp(-b, b)
@@ -137,13 +147,13 @@ class Mpc:
             J, _ = self.demo.progress(s, window)
             goal = self.demo.states[(J + 1).clamp(max=self.demo.T - 1)]
             a = self._clip(self.dynamics.inverse(s, goal))
-            nxt = self.dynamics.forward(s, a)
+            nxt = self._predict(s, a)
             if cfg.use_cost and not bool(
                 valid_actions(s, a, self.safety, self.ctx, S_next=nxt)
             ):
                 a = self._nearest_valid(s, a, gen)
             out.append(a[0])
-            s = self.dynamics.forward(s, a)
+            s = self._predict(s, a)
         return torch.stack(out)
 
     def _nearest_valid(self, s, a, gen) -> torch.Tensor:
@@ -151,7 +161,7 @@ class Mpc:
         noise = torch.randn(cfg.prior_candidates, 6, generator=gen)
         cand = self._clip(torch.cat([torch.zeros_like(a), a + cfg.sigma0 * noise]))
         ss = s.expand(len(cand), *s.shape[1:])
-        nxt = self.dynamics.forward(ss, cand)
+        nxt = self._predict(ss, cand)
         ok = valid_actions(ss, cand, self.safety, self.ctx, S_next=nxt)
         if not ok.any():
             return torch.zeros_like(a)
@@ -168,7 +178,7 @@ class Mpc:
         visited = []
         for k in range(cfg.horizon):
             a = X[:, k]
-            s_next = self.dynamics.forward(s, a)
+            s_next = self._predict(s, a)
             ok = valid_actions(s, a, self.safety, self.ctx, S_next=s_next)
             cost += (~ok).float()
             visited.append(s_next)
@@ -185,7 +195,7 @@ class Mpc:
         s = S.expand(len(X), *S.shape)
         broken = {rule: torch.zeros(len(X), dtype=torch.bool) for rule in RULES}
         for k in range(self.config.horizon):
-            s_next = self.dynamics.forward(s, X[:, k])
+            s_next = self._predict(s, X[:, k])
             v = rule_violations(s, X[:, k], self.safety, self.ctx, S_next=s_next)
             for rule in RULES:
                 broken[rule] |= v[rule]
@@ -225,7 +235,7 @@ class Mpc:
             a = prior[0]
             ok = bool(
                 valid_actions(
-                    S, a, self.safety, self.ctx, S_next=self.dynamics.forward(S, a)
+                    S, a, self.safety, self.ctx, S_next=self._predict(S, a)
                 )
             )
             return MpcResult(
