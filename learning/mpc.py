@@ -234,9 +234,7 @@ class Mpc:
         if not cfg.use_mpc:
             a = prior[0]
             ok = bool(
-                valid_actions(
-                    S, a, self.safety, self.ctx, S_next=self._predict(S, a)
-                )
+                valid_actions(S, a, self.safety, self.ctx, S_next=self._predict(S, a))
             )
             return MpcResult(
                 a, ok or not cfg.use_cost, 0, float("nan"), J0, time.perf_counter() - t0
