@@ -169,20 +169,26 @@ class Mpc:
         d = torch.where(ok, d, torch.full_like(d, float("inf")))
         return cand[d.argmin()][None]
 
+    def _predicted_steps(self, S: torch.Tensor, X: torch.Tensor):
+        """Yields (s, a, s_next) at each step of sequences X (N, h, 6) from S,
+        s_next predicted by f_D."""
+        s = S.expand(len(X), *S.shape)
+        for k in range(self.config.horizon):
+            a = X[:, k]
+            s_next = self._predict(s, a)
+            yield s, a, s_next
+            s = s_next
+
     @torch.no_grad()
     def rollout(self, S: torch.Tensor, X: torch.Tensor, window):
         """Discounted rewards (N,) and violation counts (N,) of sequences X."""
         cfg = self.config
-        s = S.expand(len(X), *S.shape)
         cost = torch.zeros(len(X))
         visited = []
-        for k in range(cfg.horizon):
-            a = X[:, k]
-            s_next = self._predict(s, a)
+        for s, a, s_next in self._predicted_steps(S, X):
             ok = valid_actions(s, a, self.safety, self.ctx, S_next=s_next)
             cost += (~ok).float()
             visited.append(s_next)
-            s = s_next
         # One batched reward call for all h * N predicted states.
         r, _ = self.demo.reward(torch.stack(visited), window)  # (h, N)
         discount = cfg.gamma ** torch.arange(cfg.horizon, dtype=r.dtype)
@@ -192,14 +198,11 @@ class Mpc:
     def blocking_rules(self, S: torch.Tensor, X: torch.Tensor) -> dict[str, int]:
         """Number of sequences X (N, h, 6) from S that break each rule at some
         step of their predicted rollout."""
-        s = S.expand(len(X), *S.shape)
         broken = {rule: torch.zeros(len(X), dtype=torch.bool) for rule in RULES}
-        for k in range(self.config.horizon):
-            s_next = self._predict(s, X[:, k])
-            v = rule_violations(s, X[:, k], self.safety, self.ctx, S_next=s_next)
+        for s, a, s_next in self._predicted_steps(S, X):
+            v = rule_violations(s, a, self.safety, self.ctx, S_next=s_next)
             for rule in RULES:
                 broken[rule] |= v[rule]
-            s = s_next
         return {rule: int(b.sum()) for rule, b in broken.items()}
 
     @torch.no_grad()
