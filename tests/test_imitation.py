@@ -35,6 +35,53 @@ def test_iou_of_hand_made_polygons():
     assert float(iou(a, t(square(1.0, 0, 0.3)[:, :2]))) == 0.0
     inner = t(square(0.0, 0.075, 0.15)[:, :2])
     assert float(iou(a, inner)) == pytest.approx(0.25, abs=1e-4)
+    # Non-convex: an L (three unit squares) against the unit square in its
+    # missing corner's neighbour: overlap 1, union 3.
+    ell = t([[0, 0], [2, 0], [2, 1], [1, 1], [1, 2], [0, 2]], dtype=torch.float32)
+    unit = t([[1, 0], [2, 0], [2, 1], [1, 1]], dtype=torch.float32)
+    assert float(iou(ell, unit)) == pytest.approx(1 / 3, abs=1e-4)
+
+
+def _grid_area(P, Q, n=600):
+    """Areas of P n Q and P u Q by even-odd tests on an n x n grid (numpy)."""
+    lo = np.minimum(P.min(0), Q.min(0))
+    hi = np.maximum(P.max(0), Q.max(0))
+    xs = lo[0] + (np.arange(n) + 0.5) * (hi[0] - lo[0]) / n
+    ys = lo[1] + (np.arange(n) + 0.5) * (hi[1] - lo[1]) / n
+    X, Y = np.meshgrid(xs, ys)
+
+    def inside(poly):
+        a, b = poly, np.roll(poly, -1, 0)
+        hit = np.zeros(X.shape, bool)
+        for (ax, ay), (bx, by) in zip(a, b, strict=True):
+            if ay == by:
+                continue
+            crosses = (ay > Y) != (by > Y)
+            hit ^= crosses & (ax + (Y - ay) * (bx - ax) / (by - ay) > X)
+        return hit
+
+    p, q = inside(P), inside(Q)
+    cell = (hi - lo).prod() / n**2
+    return (p & q).sum() * cell, (p | q).sum() * cell
+
+
+def test_iou_of_random_star_polygons_matches_a_fine_grid():
+    rng = np.random.default_rng(3)
+    A, B = [], []
+    for _ in range(12):
+        pair = []
+        for _ in range(2):
+            ang = np.sort(rng.uniform(0, 2 * np.pi, 8))
+            r = 0.1 * rng.uniform(0.5, 1.0, 8)  # star-shaped: simple
+            c = rng.normal(0, 0.03, 2)
+            pair.append(np.stack([r * np.cos(ang), r * np.sin(ang)], 1) + c)
+        A.append(pair[0])
+        B.append(pair[1])
+    A, B = np.array(A, np.float32), np.array(B, np.float32)
+    got = iou(torch.as_tensor(A), torch.as_tensor(B)).numpy()
+    for k in range(len(A)):
+        inter, union = _grid_area(A[k], B[k])
+        assert got[k] == pytest.approx(inter / union, abs=0.01)
 
 
 class Exact:
