@@ -26,12 +26,6 @@ class RewardConfig:
     w_n: float = 50.0
     # Termination: IoU with the last demo state above this, and J = T - 1.
     tau_i: float = 0.75
-    # ... and the mean 3-D keypoint distance to S_E^T below this [m]. The
-    # top-down IoU cannot see height: on hang, the towel draped over the plate
-    # with the grasped edge still 3-6 cm above the demo's final height had
-    # IoU 0.78 and J = T - 1; released there it slid off (measured). The
-    # demo's own states T-2 and T-3 are 0.4 and 2.8 cm from S_E^T.
-    tau_distance: float = 0.03
     # Progress score = IoU - this [1/m] x mean 3-D keypoint distance. The
     # paper's top-down IoU alone cannot tell a cloth lifted or lowered in place
     # from one at another height (the hang demo lowers 32 cm straight down), so
@@ -53,10 +47,6 @@ class RewardConfig:
                 raise ValueError(f"reward.{name} must be non-negative")
         if not 0 < self.tau_i <= 1:
             raise ValueError(f"reward.tau_i must be in (0, 1], got {self.tau_i}")
-        if self.tau_distance <= 0:
-            raise ValueError(
-                f"reward.tau_distance must be positive, got {self.tau_distance}"
-            )
 
 
 def euler_to_matrix(e: torch.Tensor) -> torch.Tensor:
@@ -195,17 +185,11 @@ class DemoModel:
 
     @torch.no_grad()
     def done(self, S: torch.Tensor) -> torch.Tensor:
-        """Termination classifier: IoU with S_E^T above tau_I, J = T - 1, and
-        the keypoints within tau_distance of S_E^T on average."""
+        """Termination classifier: IoU with S_E^T above tau_I and J = T - 1."""
         S = torch.as_tensor(S, dtype=torch.float32)
         J, _ = self.progress(S)
         last_iou = iou(S[..., :2], self.polygons[-1])
-        d_last = (S - self.states[-1]).norm(dim=-1).mean(-1)
-        return (
-            (last_iou > self.config.tau_i)
-            & (J == self.T - 1)
-            & (d_last < self.config.tau_distance)
-        )
+        return (last_iou > self.config.tau_i) & (J == self.T - 1)
 
 
 def learn_from_demo(
