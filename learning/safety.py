@@ -105,6 +105,11 @@ def rule_violations(
     else:
         points = S_next
     grippers = torch.stack([s1n, s2n], -2)
+    # The grippers' own targets are checked too (in data collection they are
+    # already in `moved`).
+    points = torch.cat(
+        [points, grippers.expand(*points.shape[:-2], *grippers.shape[-2:])], -2
+    )
     if ctx.frame_pose is not None:
         x, y, yaw = (float(v) for v in ctx.frame_pose)
         c, s = math.cos(yaw), math.sin(yaw)

@@ -181,8 +181,10 @@ CTX = SafetyContext(
 )
 
 
-@pytest.mark.parametrize("use_prior", [True, False])
-def test_mpc_on_a_linear_model_reaches_the_goal_and_stays_feasible(use_prior):
+@pytest.mark.parametrize(
+    ("use_prior", "execute"), [(True, "best"), (False, "best"), (True, "mean")]
+)
+def test_mpc_on_a_linear_model_reaches_the_goal_and_stays_feasible(use_prior, execute):
     states = pulled_demo(n=8)
     model = demo_model(states, tau_i=0.9)
     safety = SafetyConfig()
@@ -198,6 +200,7 @@ def test_mpc_on_a_linear_model_reaches_the_goal_and_stays_feasible(use_prior):
             max_iterations=3,
             time_budget=10.0,
             use_prior=use_prior,
+            execute=execute,
         ),
     )
     S = torch.as_tensor(states[0] + [0.02, 0.0, 0.0])  # a little to the side
@@ -209,6 +212,31 @@ def test_mpc_on_a_linear_model_reaches_the_goal_and_stays_feasible(use_prior):
         assert bool(valid_actions(S, result.action, safety, CTX))
         S = Linear().forward(S, result.action)
     assert bool(model.done(S)), (S - torch.as_tensor(states[-1])).norm(dim=-1).mean()
+
+
+class Rising(Linear):
+    """A model error: every predicted keypoint 1 m too high."""
+
+    def forward(self, S, A):
+        return super().forward(S, A) + torch.tensor([0.0, 0.0, 1.0])
+
+
+def test_mpc_projects_predictions_to_heights_the_cloth_can_reach():
+    states = pulled_demo()
+    mpc = Mpc(
+        dynamics=Rising(),
+        demo=demo_model(states),
+        safety=SafetyConfig(),
+        safety_ctx=CTX,
+        config=MpcConfig(num_samples=50, horizon=2, elites=5, max_iterations=2),
+    )
+    S = torch.as_tensor(states[0])
+    a = torch.tensor([[0.0, 0.0, 0.02, 0.0, 0.0, 0.01]])
+    nxt = mpc._predict(S[None], a)
+    # At most 5 cm above the higher gripper target (0.01 + 0.02).
+    assert float(nxt[..., 2].max()) == pytest.approx(0.03 + 0.05, abs=1e-6)
+    # Unprojected, every sequence would leave the 0.5 m workspace.
+    assert mpc.solve(S).feasible
 
 
 def test_mpc_reports_no_feasible_action():

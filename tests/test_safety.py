@@ -72,6 +72,12 @@ def test_cloth_inside_the_workspace():
     S_next = flat_state() + [0.3, 0, 0]  # a predicted state off the side
     assert "workspace" in violated([0, 0, 0, 0, 0, 0], S_next=S_next)
     assert "workspace" in violated([0, 0, -0.02, 0, 0, 0])  # below the table
+    # A predicted state inside, but a gripper target above the ceiling.
+    S = flat_state()
+    S[0, 2] = 0.49
+    inside = flat_state() + [0, 0, 0.2]
+    assert "workspace" in violated([0, 0, 0.02, 0, 0, 0], S=S, S_next=inside)
+    assert "workspace" not in violated([0, 0, 0.0, 0, 0, 0], S=S, S_next=inside)
 
 
 def test_grippers_clear_of_the_object():
