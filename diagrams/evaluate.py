@@ -6,6 +6,7 @@ Each trial is stored as one JSON line as soon as it finishes, so an
 interrupted evaluation resumes where it stopped.
 """
 
+import dataclasses as dc
 import json
 import math
 import os
@@ -15,7 +16,6 @@ from pathlib import Path
 
 import numpy as np
 from fabric_imitation.learning.errors import InputError
-from fabric_imitation.learning.mpc import MpcConfig
 from fabric_imitation.scenarios.loader import LoadScenario
 
 METHODS = {
@@ -89,7 +89,7 @@ def _run_trial(job: dict) -> dict:
             scenario_name=job["scenario"],
             demo_dir=job.get("demo"),
             priors_dir=job.get("priors"),
-            mpc_config=MpcConfig(**METHODS[job["method"]]),
+            mpc_config=dc.replace(scenario.mpc, **METHODS[job["method"]]),
             progress=False,
             seed=job["trial"],
         )

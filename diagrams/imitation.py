@@ -91,7 +91,7 @@ def MakeImitationDiagram(
     seed: int | None = None,
 ) -> Diagram:
     """Station + perception + demo reward + MPC + target integration."""
-    cfg = mpc_config or MpcConfig()
+    cfg = mpc_config or scenario.mpc
     dt = scenario.motion.step_seconds
     m = priors.num_keypoints
     builder = DiagramBuilder()

@@ -13,6 +13,7 @@ import math
 
 import numpy as np
 from fabric_imitation.learning.errors import InputError
+from fabric_imitation.learning.mpc import MpcConfig
 from fabric_imitation.learning.safety import SafetyConfig
 from pydrake.multibody.plant import MultibodyPlantConfig
 from pydrake.systems.sensors import CameraConfig
@@ -351,6 +352,9 @@ class Scenario:
     motion: MotionConfig = dc.field(default_factory=MotionConfig)
     success: SuccessConfig = dc.field(default_factory=SuccessConfig)
     safety: SafetyConfig = dc.field(default_factory=SafetyConfig)
+    # The imitation MPC's settings (the defaults are the paper's Algorithm 1
+    # at N = 500, h = 5).
+    mpc: MpcConfig = dc.field(default_factory=MpcConfig)
     collection: CollectionConfig = dc.field(default_factory=CollectionConfig)
 
     def __post_init__(self):
@@ -372,6 +376,7 @@ class Scenario:
                 self.motion,
                 self.success,
                 self.safety,
+                self.mpc,
                 self.collection,
             ):
                 sub.__post_init__()

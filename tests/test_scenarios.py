@@ -25,6 +25,9 @@ def test_named_scenarios_match_the_design():
     assert big.object.size == [0.30, 0.15, 0.05]
     assert sorted(big.cloth.size) == [0.30, 0.40]
     assert LoadScenario(scenario_name="prior").object.kind == "none"
+    # The paper's MPC output (best sample) except on hang (elite mean).
+    assert box.mpc.execute == "best" and hang.mpc.execute == "mean"
+    assert LoadScenario(scenario_name="hang_panda").mpc.execute == "mean"
 
 
 def test_inline_overrides_merge_into_nested_fields():
@@ -58,6 +61,10 @@ def test_inline_overrides_merge_into_nested_fields():
         (
             dict(scenario_name="box", scenario_text="cloth: {poissons_ratio: 0.7}"),
             "cloth.poissons_ratio",
+        ),
+        (
+            dict(scenario_name="box", scenario_text="mpc: {execute: worst}"),
+            "mpc.execute must be best or mean",
         ),
     ],
 )
