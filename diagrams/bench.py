@@ -7,6 +7,7 @@ Phase "draped": box / box_big after the scripted cover motion and release
 plate), prior with the cloth hanging from the grippers 35 cm up.
 """
 
+import dataclasses as dc
 import json
 import os
 import platform
@@ -256,7 +257,7 @@ def BenchMpc(
     )
     from fabric_imitation.learning.demo_io import LoadDemo
     from fabric_imitation.learning.demo_learning import learn_from_demo
-    from fabric_imitation.learning.mpc import Mpc, MpcConfig
+    from fabric_imitation.learning.mpc import Mpc
     from fabric_imitation.learning.priors import load_priors
 
     torch.set_num_threads(2)
@@ -267,7 +268,7 @@ def BenchMpc(
     states = DemoStates(priors, demo)
     t_fr = time.perf_counter() - t0
     model, info = learn_from_demo(states, priors.prior_states)
-    config = MpcConfig(num_samples=num_samples, horizon=horizon)
+    config = dc.replace(scenario.mpc, num_samples=num_samples, horizon=horizon)
     mpc = Mpc(
         dynamics=priors,
         demo=model,
@@ -292,6 +293,7 @@ def BenchMpc(
         "num_samples": num_samples,
         "horizon": horizon,
         "max_iterations": config.max_iterations,
+        "execute": config.execute,
         "time_budget_s": config.time_budget,
         "step_ms": {
             "p50": round(float(np.percentile(ms, 50)), 1),
