@@ -71,7 +71,7 @@ class MpcConfig:
     # mean, when its predicted rollout is feasible; else the best). The best
     # of 500 noisy samples jitters by up to 3 cm per step; the elite mean is
     # smoother: hang, the same 10 moved poses in one run: mean 7/10, best
-    # 4/10 (two later runs of the mean: 7/10, 5/10), so scenarios.yaml sets
+    # 4/10 (three later runs of the mean: 7, 5, 6/10), so scenarios.yaml sets
     # it for hang; box: both 10/10, but with the mean 5 trials reached the
     # step cap with final IoU 0.35-0.6.
     execute: str = "best"
