@@ -93,6 +93,7 @@ def rule_violations(
     out["direction"] = bad_direction(a_l, s1 - s3) | bad_direction(a_r, s2 - s4)
     lo = torch.as_tensor(ctx.workspace_lower, dtype=S.dtype)
     hi = torch.as_tensor(ctx.workspace_upper, dtype=S.dtype)
+    grippers = torch.stack([s1n, s2n], -2)
     if S_next is None:
         moved = (
             S.clone()
@@ -101,15 +102,12 @@ def rule_violations(
         )
         moved[..., idx["s1"], :] = s1n
         moved[..., idx["s2"], :] = s2n
-        points = moved
+        points = moved  # the grasped corners are the gripper targets
     else:
-        points = S_next
-    grippers = torch.stack([s1n, s2n], -2)
-    # The grippers' own targets are checked too (in data collection they are
-    # already in `moved`).
-    points = torch.cat(
-        [points, grippers.expand(*points.shape[:-2], *grippers.shape[-2:])], -2
-    )
+        # The predicted state and the gripper targets themselves.
+        points = torch.cat(
+            [S_next, grippers.expand(*S_next.shape[:-2], *grippers.shape[-2:])], -2
+        )
     if ctx.frame_pose is not None:
         x, y, yaw = (float(v) for v in ctx.frame_pose)
         c, s = math.cos(yaw), math.sin(yaw)

@@ -221,15 +221,20 @@ class Rising(Linear):
         return super().forward(S, A) + torch.tensor([0.0, 0.0, 1.0])
 
 
-def test_mpc_projects_predictions_to_heights_the_cloth_can_reach():
-    states = pulled_demo()
-    mpc = Mpc(
-        dynamics=Rising(),
+def small_mpc(dynamics, states) -> Mpc:
+    """A 50-sample, 2-step MPC following `states` with `dynamics`."""
+    return Mpc(
+        dynamics=dynamics,
         demo=demo_model(states),
         safety=SafetyConfig(),
         safety_ctx=CTX,
         config=MpcConfig(num_samples=50, horizon=2, elites=5, max_iterations=2),
     )
+
+
+def test_mpc_projects_predictions_to_heights_the_cloth_can_reach():
+    states = pulled_demo()
+    mpc = small_mpc(Rising(), states)
     S = torch.as_tensor(states[0])
     a = torch.tensor([[0.0, 0.0, 0.02, 0.0, 0.0, 0.01]])
     nxt = mpc._predict(S[None], a)
@@ -244,13 +249,7 @@ def test_mpc_reports_no_feasible_action():
     # The far edge lies 15 cm beyond the workspace: no move brings it back in
     # one step, so every sequence violates rule 3.
     start = square(0, 0.3, 0.3, z=0.01)
-    mpc = Mpc(
-        dynamics=Linear(),
-        demo=demo_model(states),
-        safety=SafetyConfig(),
-        safety_ctx=CTX,
-        config=MpcConfig(num_samples=50, horizon=2, elites=5, max_iterations=2),
-    )
+    mpc = small_mpc(Linear(), states)
     assert not mpc.solve(torch.as_tensor(start)).feasible
 
 
