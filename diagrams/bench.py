@@ -267,7 +267,7 @@ def BenchMpc(
     demo = LoadDemo(demo_dir or DEFAULT_DEMOS / scenario_name)
     states = DemoStates(priors, demo)
     t_fr = time.perf_counter() - t0
-    model, info = learn_from_demo(states, priors.prior_states)
+    model, info = learn_from_demo(states, priors.prior_states, scenario.reward)
     config = dc.replace(scenario.mpc, num_samples=num_samples, horizon=horizon)
     mpc = Mpc(
         dynamics=priors,

@@ -260,7 +260,7 @@ def Imitate(
     states = DemoStates(priors, demo)
     if priors.prior_states is None:
         raise InputError(f"priors {priors_dir} carry no prior states for f_A")
-    model, demo_info = learn_from_demo(states, priors.prior_states)
+    model, demo_info = learn_from_demo(states, priors.prior_states, scenario.reward)
     meshcat = MakeRecordingMeshcat() if record else None
     diagram = MakeImitationDiagram(
         scenario,

@@ -14,6 +14,7 @@ import numpy as np
 import torch
 from fabric_imitation.learning.models import Mlp
 from fabric_imitation.learning.polygon import iou, iou_batched
+from fabric_imitation.learning.state import corner_indices
 
 
 @dc.dataclass
@@ -22,6 +23,11 @@ class RewardConfig:
     w_p: float = 50.0
     # Weight of rotation [rad] against translation [m] inside D_P.
     w_r: float = 0.1
+    # Weight of the grasped corners' distance to the subgoal's inside D_P
+    # (the corners are measured by the robot now, estimated by f_R in the
+    # demo): seen from above, a cloth hanging under the grippers hides its
+    # other keypoints. 0 gives the paper's D_P.
+    w_grasp: float = 0.0
     # Weight of the negative (overshoot) distance D_N.
     w_n: float = 50.0
     # Termination: IoU with the last demo state above this, and J = T - 1.
@@ -42,7 +48,7 @@ class RewardConfig:
     seed: int = 0
 
     def __post_init__(self):
-        for name in ("w_p", "w_r", "w_n"):
+        for name in ("w_p", "w_r", "w_grasp", "w_n"):
             if getattr(self, name) < 0:
                 raise ValueError(f"reward.{name} must be non-negative")
         if not 0 < self.tau_i <= 1:
@@ -138,6 +144,8 @@ class DemoModel:
         self.polygons = self.states[..., :2]
         self.compile_iou = config.compile_iou
         self.centres = self.polygons.mean(-2)
+        idx = corner_indices(self.states.shape[-2])
+        self._grasped = [idx["s1"], idx["s2"]]
 
     def similarity(self, S: torch.Tensor, window: tuple[int, int] | None = None):
         """IoU (..., W) of S with demo states lo..hi-1 (default all)."""
@@ -174,6 +182,10 @@ class DemoModel:
         sub = self.states[(J + 1).clamp(max=self.T - 1)]
         e, T = self.f_A(S, sub)
         d_p = T.norm(dim=-1) + cfg.w_r * e.norm(dim=-1)
+        if cfg.w_grasp > 0:
+            g = self._grasped
+            d_grasp = (S[..., g, :] - sub[..., g, :]).norm(dim=-1).mean(-1)
+            d_p = d_p + cfg.w_grasp * d_grasp
         last = self.states[-1]
         prev = self.states[max(self.T - 2, 0)]
         d_last = (S - last).norm(dim=-1).mean(-1)

@@ -12,6 +12,7 @@ import dataclasses as dc
 import math
 
 import numpy as np
+from fabric_imitation.learning.demo_learning import RewardConfig
 from fabric_imitation.learning.errors import InputError
 from fabric_imitation.learning.mpc import MpcConfig
 from fabric_imitation.learning.safety import SafetyConfig
@@ -355,6 +356,8 @@ class Scenario:
     # The imitation MPC's settings (the defaults are the paper's Algorithm 1
     # at N = 500, h = 5).
     mpc: MpcConfig = dc.field(default_factory=MpcConfig)
+    # The demo reward's settings (the defaults are the paper's R_E).
+    reward: RewardConfig = dc.field(default_factory=RewardConfig)
     collection: CollectionConfig = dc.field(default_factory=CollectionConfig)
 
     def __post_init__(self):
@@ -377,6 +380,7 @@ class Scenario:
                 self.success,
                 self.safety,
                 self.mpc,
+                self.reward,
                 self.collection,
             ):
                 sub.__post_init__()

@@ -130,6 +130,26 @@ def test_reward_and_termination_on_hand_made_states():
     assert not bool(model.done(past + torch.tensor([0.0, -0.05, 0.0])))
 
 
+def test_d_p_grasp_term_on_hand_made_states():
+    states = pulled_demo()
+    S = states[3].copy()
+    S[[0, 2], 0] += [0.02, -0.02]  # grasped corners 4 cm closer together
+    S[[0, 2], 2] += 0.01
+    sub = states[4]
+    T = (sub - S).mean(0)
+    grasp = np.linalg.norm(S[[0, 2]] - sub[[0, 2]], axis=-1).mean()
+    base = demo_model(states, w_p=10.0)
+    r0, J = base.reward(torch.as_tensor(S)[None])
+    assert int(J[0]) == 3
+    assert float(r0[0]) == pytest.approx(3 - 10 * np.linalg.norm(T), abs=1e-4)
+    gripped = demo_model(states, w_p=10.0, w_grasp=1.5)
+    r, _ = gripped.reward(torch.as_tensor(S)[None])
+    assert float(r0[0] - r[0]) == pytest.approx(10 * 1.5 * grasp, abs=1e-4)
+    # The demo's own state: its grasped corners are 3 cm from the subgoal's.
+    r, _ = gripped.reward(torch.as_tensor(states[3])[None])
+    assert float(r[0]) == pytest.approx(3 - 10 * 0.03 - 10 * 1.5 * 0.03, abs=1e-4)
+
+
 def test_registration_recovers_a_known_rigid_transform():
     rng = np.random.default_rng(0)
     source = square(0.0, 0.0, 0.3) + rng.normal(0, 0.005, (8, 3)).astype(np.float32)

@@ -66,6 +66,10 @@ def test_inline_overrides_merge_into_nested_fields():
             dict(scenario_name="box", scenario_text="mpc: {execute: worst}"),
             "mpc.execute must be best or mean",
         ),
+        (
+            dict(scenario_name="hang", scenario_text="reward: {w_grasp: -1.0}"),
+            "reward.w_grasp must be non-negative",
+        ),
     ],
 )
 def test_bad_scenarios_raise_one_line_errors(kwargs, message):
