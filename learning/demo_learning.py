@@ -145,7 +145,8 @@ class DemoModel:
         self.compile_iou = config.compile_iou
         self.centres = self.polygons.mean(-2)
         idx = corner_indices(self.states.shape[-2])
-        self._grasped = [idx["s1"], idx["s2"]]
+        # Keypoint indices of the grasped corners s1, s2.
+        self.grasped = [idx["s1"], idx["s2"]]
 
     def similarity(self, S: torch.Tensor, window: tuple[int, int] | None = None):
         """IoU (..., W) of S with demo states lo..hi-1 (default all)."""
@@ -183,7 +184,7 @@ class DemoModel:
         e, T = self.f_A(S, sub)
         d_p = T.norm(dim=-1) + cfg.w_r * e.norm(dim=-1)
         if cfg.w_grasp > 0:
-            g = self._grasped
+            g = self.grasped
             d_grasp = (S[..., g, :] - sub[..., g, :]).norm(dim=-1).mean(-1)
             d_p = d_p + cfg.w_grasp * d_grasp
         last = self.states[-1]

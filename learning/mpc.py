@@ -27,7 +27,6 @@ from fabric_imitation.learning.safety import (
     rule_violations,
     valid_actions,
 )
-from fabric_imitation.learning.state import corner_indices
 
 # [m] how far a predicted cloth point may be above the higher gripper (or the
 # object's top): keypoint noise and a cloth bulging over the grasp.
@@ -115,9 +114,6 @@ class Mpc:
         self.safety = safety
         self.ctx = safety_ctx
         self.config = config
-        m = len(demo.states[0])
-        idx = corner_indices(m)
-        self._grasped = (idx["s1"], idx["s2"])
         self._object_top = (
             float(safety_ctx.object_size[2])
             if safety_ctx.object_size is not None
@@ -155,7 +151,7 @@ class Mpc:
         grippers did the same at the workspace's 0.5 m ceiling (hang, object
         turned by 45 degrees)."""
         nxt = self.dynamics.forward(s, a)
-        i1, i2 = self._grasped
+        i1, i2 = self.demo.grasped
         grippers_z = torch.maximum(s[..., i1, 2] + a[..., 2], s[..., i2, 2] + a[..., 5])
         ceiling = grippers_z.clamp_min(self._object_top) + CLOTH_ABOVE_GRIPPERS
         z = torch.minimum(nxt[..., 2].clamp_min(0.0), ceiling[..., None])
