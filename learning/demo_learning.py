@@ -37,6 +37,9 @@ class RewardConfig:
     # from one at another height (the hang demo lowers 32 cm straight down), so
     # the distance breaks such ties; 0 gives the paper's J.
     progress_distance_weight: float = 2.0
+    # ... plus this [1/m] x mean distance of the grasped corners (measured by
+    # the robot, so trusted more than the estimated keypoints). 0: off.
+    progress_grasp_weight: float = 0.0
     # Score the MPC's thousands of predicted states with a compiled IoU.
     compile_iou: bool = True
     # f_A training: steps, batch, learning rate, source-state jitter.
@@ -48,7 +51,7 @@ class RewardConfig:
     seed: int = 0
 
     def __post_init__(self):
-        for name in ("w_p", "w_r", "w_grasp", "w_n"):
+        for name in ("w_p", "w_r", "w_grasp", "w_n", "progress_grasp_weight"):
             if getattr(self, name) < 0:
                 raise ValueError(f"reward.{name} must be non-negative")
         if not 0 < self.tau_i <= 1:
@@ -167,6 +170,10 @@ class DemoModel:
         if self.config.progress_distance_weight > 0:
             d3 = (S[..., None, :, :] - self.states[lo:hi]).norm(dim=-1).mean(-1)
             score = sim - self.config.progress_distance_weight * d3
+        if self.config.progress_grasp_weight > 0:
+            g = self.grasped
+            d_g = (S[..., None, g, :] - self.states[lo:hi, g]).norm(dim=-1).mean(-1)
+            score = score - self.config.progress_grasp_weight * d_g
         _, j = score.max(-1)
         best_iou = sim.max(-1).values
         centre = S[..., :2].mean(-2)

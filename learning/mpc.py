@@ -74,6 +74,11 @@ class MpcConfig:
     # it for hang; box: both 10/10, but with the mean 5 trials reached the
     # step cap with final IoU 0.35-0.6.
     execute: str = "best"
+    # Action prior: "inverse" (the paper's: f_I towards each subgoal) or
+    # "grasp" (each gripper straight towards the subgoal's grasped corner:
+    # the exact inverse for the two keypoints the grippers hold, which does
+    # not depend on f_R's estimates of the rest of the cloth).
+    prior: str = "inverse"
 
     def __post_init__(self):
         if self.num_samples < 1 or self.horizon < 1:
@@ -84,6 +89,8 @@ class MpcConfig:
             raise ValueError(f"mpc.beta must be in (0, 1], got {self.beta}")
         if self.execute not in ("best", "mean"):
             raise ValueError(f"mpc.execute must be best or mean, got {self.execute!r}")
+        if self.prior not in ("inverse", "grasp"):
+            raise ValueError(f"mpc.prior must be inverse or grasp, got {self.prior!r}")
 
 
 @dc.dataclass
@@ -165,7 +172,8 @@ class Mpc:
     def action_prior(
         self, S: torch.Tensor, gen: torch.Generator | None = None, window=None
     ):
-        """(h, 6): iterate f_I towards the subgoal of the imagined state, f_D.
+        """(h, 6): iterate f_I (or, with `prior="grasp"`, the grasped
+        corners' offsets) towards the subgoal of the imagined state, f_D.
 
         An f_I action that breaks a rule is replaced by the nearest valid one
         among `prior_candidates` perturbations of it (zero if none is valid),
@@ -177,7 +185,12 @@ class Mpc:
         for _ in range(cfg.horizon):
             J, _ = self.demo.progress(s, window)
             goal = self.demo.states[(J + 1).clamp(max=self.demo.T - 1)]
-            a = self._clip(self.dynamics.inverse(s, goal))
+            if cfg.prior == "grasp":
+                i1, i2 = self.demo.grasped
+                a = torch.cat([goal[:, i1] - s[:, i1], goal[:, i2] - s[:, i2]], -1)
+            else:
+                a = self.dynamics.inverse(s, goal)
+            a = self._clip(a)
             nxt = self._predict(s, a)
             if cfg.use_cost and not bool(
                 valid_actions(s, a, self.safety, self.ctx, S_next=nxt)

@@ -150,6 +150,24 @@ def test_d_p_grasp_term_on_hand_made_states():
     assert float(r[0]) == pytest.approx(3 - 10 * 0.03 - 10 * 1.5 * 0.03, abs=1e-4)
 
 
+def test_progress_grasp_weight_follows_the_measured_corners():
+    states = pulled_demo()
+    # Estimated keypoints of demo state 1, grasped corners where state 4 has
+    # them (what a hidden cloth under the grippers looks like).
+    S = states[1].copy()
+    S[[0, 2]] = states[4][[0, 2]]
+    S = torch.as_tensor(S)[None]
+    J, _ = demo_model(states).progress(S)
+    assert int(J[0]) == 1
+    J, _ = demo_model(states, progress_grasp_weight=5.0).progress(S)
+    assert int(J[0]) == 4
+    # The demo's own states keep their index.
+    J, _ = demo_model(states, progress_grasp_weight=5.0).progress(
+        torch.as_tensor(states)
+    )
+    assert J.tolist() == list(range(len(states)))
+
+
 def test_registration_recovers_a_known_rigid_transform():
     rng = np.random.default_rng(0)
     source = square(0.0, 0.0, 0.3) + rng.normal(0, 0.005, (8, 3)).astype(np.float32)
@@ -232,6 +250,45 @@ def test_mpc_on_a_linear_model_reaches_the_goal_and_stays_feasible(use_prior, ex
         assert bool(valid_actions(S, result.action, safety, CTX))
         S = Linear().forward(S, result.action)
     assert bool(model.done(S)), (S - torch.as_tensor(states[-1])).norm(dim=-1).mean()
+
+
+class WrongInverse(Linear):
+    """A model error: f_I points away from the goal."""
+
+    def inverse(self, S, S_next):
+        return -super().inverse(S, S_next)
+
+
+def test_grasp_prior_follows_the_subgoal_corners_despite_a_wrong_f_i():
+    states = pulled_demo(n=8)
+    model = demo_model(states, tau_i=0.9)
+    safety = SafetyConfig()
+    mpc = Mpc(
+        dynamics=WrongInverse(),
+        demo=model,
+        safety=safety,
+        safety_ctx=CTX,
+        config=MpcConfig(
+            num_samples=200,
+            horizon=3,
+            elites=20,
+            max_iterations=3,
+            time_budget=10.0,
+            prior="grasp",
+        ),
+    )
+    S = torch.as_tensor(states[0] + [0.02, 0.0, 0.0])
+    goal = torch.as_tensor(states[1])
+    expected = torch.cat([goal[0] - S[0], goal[2] - S[2]])  # within 3 cm
+    assert torch.allclose(mpc.action_prior(S)[0], expected, atol=1e-6)
+    for step in range(30):
+        if bool(model.done(S)):
+            break
+        result = mpc.solve(S, step=step)
+        assert result.feasible
+        assert bool(valid_actions(S, result.action, safety, CTX))
+        S = Linear().forward(S, result.action)
+    assert bool(model.done(S))
 
 
 class Rising(Linear):

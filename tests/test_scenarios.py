@@ -67,8 +67,19 @@ def test_inline_overrides_merge_into_nested_fields():
             "mpc.execute must be best or mean",
         ),
         (
+            dict(scenario_name="hang", scenario_text="mpc: {prior: oracle}"),
+            "mpc.prior must be inverse or grasp",
+        ),
+        (
             dict(scenario_name="hang", scenario_text="reward: {w_grasp: -1.0}"),
             "reward.w_grasp must be non-negative",
+        ),
+        (
+            dict(
+                scenario_name="hang",
+                scenario_text="reward: {progress_grasp_weight: -5.0}",
+            ),
+            "reward.progress_grasp_weight must be non-negative",
         ),
     ],
 )
