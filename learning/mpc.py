@@ -2,8 +2,9 @@
 section 7), batched in torch. Works in the task object's frame.
 
 Each control step, from the current state S_t:
-1. action prior: roll h steps through f_I and f_D, each aiming at the subgoal
-   S_E[J + 1] of the imagined state;
+1. action prior: roll h steps through f_I (or, with `prior="grasp"`, the
+   grasped corners' offsets) and f_D, each aiming at the subgoal S_E[J + 1]
+   of the imagined state;
 2. sample N sequences X = X_prior + eps, eps ~ N(mu, diag Sigma); roll out
    with f_D; score sum_k gamma^(k-1) R_E(S_t+k) and count rule violations;
 3. keep the feasible ones, move (mu, Sigma) towards their top elites with
@@ -175,7 +176,7 @@ class Mpc:
         """(h, 6): iterate f_I (or, with `prior="grasp"`, the grasped
         corners' offsets) towards the subgoal of the imagined state, f_D.
 
-        An f_I action that breaks a rule is replaced by the nearest valid one
+        A prior action that breaks a rule is replaced by the nearest valid one
         among `prior_candidates` perturbations of it (zero if none is valid),
         so that the samples drawn around the prior start near feasible ones.
         """
