@@ -167,13 +167,16 @@ class DemoModel:
         lo, hi = window or (0, self.T)
         sim = self.similarity(S, (lo, hi))
         score = sim
-        if self.config.progress_distance_weight > 0:
-            d3 = (S[..., None, :, :] - self.states[lo:hi]).norm(dim=-1).mean(-1)
-            score = sim - self.config.progress_distance_weight * d3
-        if self.config.progress_grasp_weight > 0:
-            g = self.grasped
-            d_g = (S[..., None, g, :] - self.states[lo:hi, g]).norm(dim=-1).mean(-1)
-            score = score - self.config.progress_grasp_weight * d_g
+        cfg = self.config
+        if cfg.progress_distance_weight > 0 or cfg.progress_grasp_weight > 0:
+            # Keypoint distances (..., W, M) to each demo state, computed once
+            # for both terms.
+            d = (S[..., None, :, :] - self.states[lo:hi]).norm(dim=-1)
+            score = (
+                score
+                - cfg.progress_distance_weight * d.mean(-1)
+                - cfg.progress_grasp_weight * d[..., self.grasped].mean(-1)
+            )
         _, j = score.max(-1)
         best_iou = sim.max(-1).values
         centre = S[..., :2].mean(-2)

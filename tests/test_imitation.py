@@ -219,17 +219,12 @@ CTX = SafetyContext(
 )
 
 
-@pytest.mark.parametrize(
-    ("use_prior", "execute"), [(True, "best"), (False, "best"), (True, "mean")]
-)
-def test_mpc_on_a_linear_model_reaches_the_goal_and_stays_feasible(use_prior, execute):
-    states = pulled_demo(n=8)
-    model = demo_model(states, tau_i=0.9)
-    safety = SafetyConfig()
-    mpc = Mpc(
-        dynamics=Linear(),
+def linear_goal_mpc(dynamics, model, **config) -> Mpc:
+    """A 200-sample, 3-step MPC with three iterations every step."""
+    return Mpc(
+        dynamics=dynamics,
         demo=model,
-        safety=safety,
+        safety=SafetyConfig(),
         safety_ctx=CTX,
         config=MpcConfig(
             num_samples=200,
@@ -237,18 +232,34 @@ def test_mpc_on_a_linear_model_reaches_the_goal_and_stays_feasible(use_prior, ex
             elites=20,
             max_iterations=3,
             time_budget=10.0,
-            use_prior=use_prior,
-            execute=execute,
+            **config,
         ),
     )
-    S = torch.as_tensor(states[0] + [0.02, 0.0, 0.0])  # a little to the side
-    for step in range(30):
+
+
+def run_to_goal(mpc: Mpc, S: torch.Tensor, steps: int = 30) -> torch.Tensor:
+    """Closed loop on the `Linear` model until the classifier fires; every
+    applied action must be feasible. Returns the final state."""
+    model = mpc.demo
+    for step in range(steps):
         if bool(model.done(S)):
             break
         result = mpc.solve(S, step=step)
         assert result.feasible
-        assert bool(valid_actions(S, result.action, safety, CTX))
+        assert bool(valid_actions(S, result.action, mpc.safety, CTX))
         S = Linear().forward(S, result.action)
+    return S
+
+
+@pytest.mark.parametrize(
+    ("use_prior", "execute"), [(True, "best"), (False, "best"), (True, "mean")]
+)
+def test_mpc_on_a_linear_model_reaches_the_goal_and_stays_feasible(use_prior, execute):
+    states = pulled_demo(n=8)
+    model = demo_model(states, tau_i=0.9)
+    mpc = linear_goal_mpc(Linear(), model, use_prior=use_prior, execute=execute)
+    S = torch.as_tensor(states[0] + [0.02, 0.0, 0.0])  # a little to the side
+    S = run_to_goal(mpc, S)
     assert bool(model.done(S)), (S - torch.as_tensor(states[-1])).norm(dim=-1).mean()
 
 
@@ -262,33 +273,12 @@ class WrongInverse(Linear):
 def test_grasp_prior_follows_the_subgoal_corners_despite_a_wrong_f_i():
     states = pulled_demo(n=8)
     model = demo_model(states, tau_i=0.9)
-    safety = SafetyConfig()
-    mpc = Mpc(
-        dynamics=WrongInverse(),
-        demo=model,
-        safety=safety,
-        safety_ctx=CTX,
-        config=MpcConfig(
-            num_samples=200,
-            horizon=3,
-            elites=20,
-            max_iterations=3,
-            time_budget=10.0,
-            prior="grasp",
-        ),
-    )
+    mpc = linear_goal_mpc(WrongInverse(), model, prior="grasp")
     S = torch.as_tensor(states[0] + [0.02, 0.0, 0.0])
     goal = torch.as_tensor(states[1])
     expected = torch.cat([goal[0] - S[0], goal[2] - S[2]])  # within 3 cm
     assert torch.allclose(mpc.action_prior(S)[0], expected, atol=1e-6)
-    for step in range(30):
-        if bool(model.done(S)):
-            break
-        result = mpc.solve(S, step=step)
-        assert result.feasible
-        assert bool(valid_actions(S, result.action, safety, CTX))
-        S = Linear().forward(S, result.action)
-    assert bool(model.done(S))
+    assert bool(model.done(run_to_goal(mpc, S)))
 
 
 class Rising(Linear):
