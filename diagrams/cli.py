@@ -275,6 +275,13 @@ def _add_bench_sim(p):
         help="scenario names (default: prior box hang box_big)",
     )
     p.add_argument(
+        "--engines",
+        nargs="+",
+        default=["vbd", "fem"],
+        choices=["vbd", "fem"],
+        help="cloth engines to measure side by side (default: both)",
+    )
+    p.add_argument(
         "--flat-seconds",
         type=float,
         default=1.0,
@@ -288,7 +295,10 @@ def _bench_sim(args) -> dict:
     from fabric_imitation.diagrams.bench import BenchSim
 
     return BenchSim(
-        scenario_names=args.scenarios, flat_seconds=args.flat_seconds, out=args.out
+        scenario_names=args.scenarios,
+        engines=args.engines,
+        flat_seconds=args.flat_seconds,
+        out=args.out,
     )
 
 

@@ -22,7 +22,7 @@ runs a station (the runners in this package do).
 import dataclasses as dc
 
 import numpy as np
-from fabric_imitation.diagrams.cloth_mesh import ClothMesh, MakeClothMesh
+from fabric_imitation.diagrams.cloth_mesh import ClothMesh, MakeClothMesh, TopTriangles
 from fabric_imitation.learning.errors import InputError
 from fabric_imitation.scenarios.schema import Scenario, yaw_rad
 from fabric_imitation.systems.station_parts import (
@@ -109,7 +109,7 @@ class ClothStationHandles:
     scenario: Scenario
     plant: MultibodyPlant
     mesh: ClothMesh
-    cloth_id: object  # DeformableBodyId
+    cloth_id: object  # fem: DeformableBodyId; vbd: the ClothSimulator system
     weld_ids: list[MultibodyConstraintId]
     clips: list  # RigidBody
     keypoint_vertices: np.ndarray
@@ -226,6 +226,96 @@ def _add_cloth(plant: MultibodyPlant, scenario: Scenario, mesh: ClothMesh):
     model = plant.mutable_deformable_model()
     cloth_id = model.RegisterDeformableBody(instance, config, 1.0)
     return cloth_id, X_WC
+
+
+def ClothResolution(scenario: Scenario) -> list[int]:
+    """(nx, ny, nz) of the cloth's slab mesh: the FEM resolution, or the VBD
+    sheet's grid with two layers (its top face and one thickness below)."""
+    cloth = scenario.cloth
+    if cloth.engine == "fem":
+        return list(cloth.resolution)
+    return [*cloth.vbd.resolution, 2]
+
+
+def GraspedVertices(scenario: Scenario, p_C: np.ndarray) -> dict:
+    """Side -> indices of the points p_C (cloth frame) inside each grasped
+    corner's g x g capture square (inclusive, 0.5 mm slack)."""
+    cloth = scenario.cloth
+    g = cloth.grasp_size + 5e-4
+    hx, hy = cloth.size[0] / 2, cloth.size[1] / 2
+    near = p_C[:, 1] <= -hy + g
+    return {
+        "left": np.flatnonzero(near & (p_C[:, 0] <= -hx + g)),
+        "right": np.flatnonzero(near & (p_C[:, 0] >= hx - g)),
+    }
+
+
+def _add_vbd_cloth(builder, scene_graph, scenario, mesh, X_WC, X_WO):
+    """The VBD cloth system, with its slab registered as a deformable
+    geometry of its own SceneGraph source (camera and meshcat see it)."""
+    from fabric_imitation.systems.cloth_simulator import (
+        BoxCollider,
+        ClothSimulator,
+        VbdSettings,
+    )
+
+    cloth, vbd = scenario.cloth, scenario.cloth.vbd
+    source = scene_graph.RegisterSource("vbd_cloth")
+    shape = Mesh(InMemoryMesh(mesh_file=MemoryFile(mesh.to_vtk(), ".vtk", "cloth.vtk")))
+    instance = GeometryInstance(X_WC, shape, "cloth")
+    instance.set_illustration_properties(
+        MakePhongIllustrationProperties([0.85, 0.15, 0.15, 1.0])
+    )
+    instance.set_perception_properties(
+        _perception(Rgba(0.85, 0.15, 0.15, 1.0), CLOTH_LABEL)
+    )
+    geometry_id = scene_graph.RegisterDeformableGeometry(
+        source, scene_graph.world_frame_id(), instance, 1.0
+    )
+    top = mesh.top_layer.ravel()
+    table, obj = scenario.table, scenario.object
+    colliders = [
+        BoxCollider(
+            RigidTransform([0, 0, -table.size[2] / 2]),
+            tuple(table.size),
+            table.friction,
+        )
+    ]
+    if obj.kind != "none":
+        colliders.append(
+            BoxCollider(
+                X_WO @ RigidTransform([0, 0, obj.size[2] / 2]),
+                tuple(obj.size),
+                obj.friction,
+            )
+        )
+    fields = {f.name for f in dc.fields(VbdSettings)}
+    settings = VbdSettings(
+        friction=cloth.friction,
+        **{k: v for k, v in dc.asdict(vbd).items() if k in fields},
+    )
+    system = ClothSimulator(
+        sheet_W=(
+            X_WC.GetAsMatrix34() @ np.c_[mesh.vertices[top], np.ones(len(top))].T
+        ).T,
+        triangles=TopTriangles(np.arange(len(top)).reshape(mesh.top_layer.shape)),
+        slab_top=top,
+        slab_bottom=mesh.grid[:, :, 0].ravel(),
+        thickness=cloth.thickness,
+        keypoint_vertices=mesh.keypoint_vertices(NUM_KEYPOINTS),
+        grasped=GraspedVertices(scenario, mesh.vertices[top]),
+        grippers_W0=GraspCorners(scenario),
+        colliders=colliders,
+        settings=settings,
+        time_step=scenario.plant_config.time_step,
+        geometry_id=geometry_id,
+    )
+    system = builder.AddNamedSystem("vbd_cloth", system)
+    builder.Connect(
+        system.GetOutputPort("geometry_configuration"),
+        scene_graph.get_source_configuration_port(source),
+    )
+    return system
 
 
 def _add_xyz_joints(
@@ -346,11 +436,18 @@ def MakeClothStation(
     builder = DiagramBuilder()
     plant, scene_graph = AddMultibodyPlant(scenario.plant_config, builder)
     plant.set_name("plant")
+    fem = scenario.cloth.engine == "fem"
     mesh = MakeClothMesh(
-        scenario.cloth.size, scenario.cloth.thickness, scenario.cloth.resolution
+        scenario.cloth.size, scenario.cloth.thickness, ClothResolution(scenario)
     )
     X_WO = _add_table_and_object(plant, scenario)
-    cloth_id, X_WC = _add_cloth(plant, scenario, mesh)
+    if fem:
+        cloth_id, X_WC = _add_cloth(plant, scenario, mesh)
+    else:
+        cloth_id, X_WC = (
+            None,
+            PoseOnTable(scenario.cloth.pose, scenario.cloth.thickness / 2),
+        )
     corners = GraspCorners(scenario)
     dt = scenario.plant_config.time_step
     weld_ids, clips = [], []
@@ -366,7 +463,7 @@ def MakeClothStation(
         }
         holders = {side: anchors[side][1] for side in SIDES}
         X_holder_clip = {side: RigidTransform() for side in SIDES}
-    for side in SIDES:
+    for side in SIDES if fem else ():
         weld_id, clip = _add_clip(
             plant,
             scenario,
@@ -384,8 +481,12 @@ def MakeClothStation(
     initialize = None
     if scenario.grippers.kind == "panda":
         initialize = pandas.Wire(builder)
+        measured = {
+            side: builder.GetSubsystemByName("tcp_positions").GetOutputPort(side)
+            for side in SIDES
+        }
     else:
-        _wire_anchors(builder, plant, {s: anchors[s][0] for s in SIDES}, dt)
+        measured = _wire_anchors(builder, plant, {s: anchors[s][0] for s in SIDES}, dt)
 
     latch = builder.AddNamedSystem("release_latch", ReleaseLatch(period=dt))
     builder.ExportInput(latch.GetInputPort("release"), StationPorts.RELEASE)
@@ -398,19 +499,28 @@ def MakeClothStation(
     )
     builder.ExportOutput(object_pose.get_output_port(), StationPorts.OBJECT_POSE)
 
-    model = plant.deformable_model()
-    truth = builder.AddNamedSystem(
-        "cloth_ground_truth",
-        ClothGroundTruth(
-            geometry_id=model.GetGeometryId(cloth_id),
-            num_vertices=len(mesh.vertices),
-            keypoint_vertices=mesh.keypoint_vertices(NUM_KEYPOINTS),
-        ),
-    )
-    builder.Connect(
-        plant.get_deformable_body_configuration_output_port(),
-        truth.GetInputPort("configuration"),
-    )
+    if fem:
+        model = plant.deformable_model()
+        truth = builder.AddNamedSystem(
+            "cloth_ground_truth",
+            ClothGroundTruth(
+                geometry_id=model.GetGeometryId(cloth_id),
+                num_vertices=len(mesh.vertices),
+                keypoint_vertices=mesh.keypoint_vertices(NUM_KEYPOINTS),
+            ),
+        )
+        builder.Connect(
+            plant.get_deformable_body_configuration_output_port(),
+            truth.GetInputPort("configuration"),
+        )
+    else:
+        truth = _add_vbd_cloth(builder, scene_graph, scenario, mesh, X_WC, X_WO)
+        cloth_id = truth
+        for side in SIDES:
+            builder.Connect(
+                measured[side], truth.GetInputPort(f"{side}.gripper_position")
+            )
+        builder.Connect(latch.GetOutputPort("released"), truth.GetInputPort("release"))
     builder.ExportOutput(truth.GetOutputPort("positions"), StationPorts.CLOTH_POSITIONS)
     builder.ExportOutput(truth.GetOutputPort("keypoints"), StationPorts.CLOTH_KEYPOINTS)
 
@@ -443,8 +553,10 @@ def MakeClothStation(
 
 def _wire_anchors(
     builder: DiagramBuilder, plant: MultibodyPlant, anchors: dict, dt: float
-) -> None:
-    """Position targets -> PD desired states of the anchors' joints."""
+) -> dict:
+    """Position targets -> PD desired states of the anchors' joints. Returns
+    the output port of each anchor's measured world position."""
+    measured = {}
     for side in SIDES:
         interpolator = builder.AddNamedSystem(
             f"{side}.target_interpolator",
@@ -460,6 +572,8 @@ def _wire_anchors(
             plant.get_state_output_port(anchors[side]), demux.get_input_port()
         )
         builder.ExportOutput(demux.get_output_port(0), StationPorts.ee_measured(side))
+        measured[side] = demux.get_output_port(0)
+    return measured
 
 
 def InitializeStation(station: Diagram, station_context) -> None:

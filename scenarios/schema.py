@@ -37,15 +37,88 @@ class TableConfig:
         _check(self.friction >= 0, "table.friction", self.friction)
 
 
+CLOTH_ENGINES = ("vbd", "fem")
+
+
+@dc.dataclass
+class VbdConfig:
+    """Settings of the `vbd` cloth engine: newton's Vertex Block Descent
+    solver on a triangle mesh (systems/cloth_simulator.py). SI units."""
+
+    # Particles along width and depth of the sheet (the slab that the camera
+    # and `cloth.positions` see has the same grid, two layers).
+    resolution: list[int] = dc.field(default_factory=lambda: [21, 21])
+    # Substeps per plant time step (even: a captured step swaps two states)
+    # and VBD iterations per substep.
+    substeps: int = 2
+    iterations: int = 5
+    # Membrane stiffness [N/m] (the triangles' Lame coefficients mu and
+    # lambda, per unit area): a woven towel stretches by well under 1% under
+    # its own weight.
+    stretch_stiffness: float = 1.0e3
+    area_stiffness: float = 1.0e3
+    # Stiffness-proportional (Rayleigh) damping of the membrane [s].
+    stretch_damping: float = 1.0e-3
+    # Dihedral bending stiffness [N m / rad^2] and its damping [s]: soft
+    # enough that a free edge hangs down a box's side within 1-3 cm.
+    bending_stiffness: float = 1.0e-5
+    bending_damping: float = 1.0e-3
+    # Mass per area [kg/m^2] (a light cotton towel).
+    areal_density: float = 0.2
+    # Penalty contact against the table and the task object: stiffness
+    # [N/m], damping [s] and contact distance [m] (the particles' radius:
+    # the sheet is the cloth's top face and rests this far above a surface).
+    contact_stiffness: float = 1.0e4
+    contact_damping: float = 1.0e-2
+    contact_distance: float = 0.004
+    # Contact of the cloth's edges and faces with the table and the object,
+    # not only of its particles: with particles only, the 1 cm plate edge
+    # slipped between the hang towel's particles 1.5 cm apart and the towel
+    # slid off (scripted hang failed; succeeded with it, about 10% slower).
+    surface_contact: bool = True
+
+    def __post_init__(self):
+        _check(
+            len(self.resolution) == 2 and min(self.resolution) >= 2,
+            "cloth.vbd.resolution",
+            self.resolution,
+        )
+        _check(
+            self.substeps >= 2 and self.substeps % 2 == 0,
+            "cloth.vbd.substeps (even, >= 2)",
+            self.substeps,
+        )
+        _check(self.iterations >= 1, "cloth.vbd.iterations", self.iterations)
+        for name in (
+            "stretch_stiffness",
+            "area_stiffness",
+            "areal_density",
+            "contact_stiffness",
+            "contact_distance",
+        ):
+            _check(getattr(self, name) > 0, f"cloth.vbd.{name}", getattr(self, name))
+        for name in (
+            "stretch_damping",
+            "bending_stiffness",
+            "bending_damping",
+            "contact_damping",
+        ):
+            _check(getattr(self, name) >= 0, f"cloth.vbd.{name}", getattr(self, name))
+
+
 @dc.dataclass
 class ClothConfig:
+    # Cloth engine: vbd (newton's VBD triangle-mesh cloth, co-simulated; the
+    # settings under `vbd`) or fem (Drake's deformable FEM slab inside the
+    # plant; the resolution and material fields below).
+    engine: str = "vbd"
     # Rest size [m]: width along the grasped edge (local x), depth (local y).
     size: list[float] = dc.field(default_factory=lambda: [0.30, 0.30])
     # Slab thickness [m].
     thickness: float = 0.004
-    # Vertices along width, depth and thickness of the tetrahedral slab.
+    # fem: vertices along width, depth and thickness of the tetrahedral slab.
     resolution: list[int] = dc.field(default_factory=lambda: [11, 11, 2])
-    # FEM material.
+    # fem: FEM material.
     youngs_modulus: float = 1.0e4
     poissons_ratio: float = 0.3
     mass_density: float = 100.0
@@ -62,8 +135,11 @@ class ClothConfig:
     # Side [m] of the square capture region at each grasped corner: vertices
     # inside it are fixed to the gripper's clip.
     grasp_size: float = 0.04
+    vbd: VbdConfig = dc.field(default_factory=VbdConfig)
 
     def __post_init__(self):
+        _check(self.engine in CLOTH_ENGINES, "cloth.engine", self.engine)
+        self.vbd.__post_init__()
         _check(len(self.size) == 2 and min(self.size) > 0.02, "cloth.size", self.size)
         _check(0 < self.thickness < 0.05, "cloth.thickness", self.thickness)
         _check(

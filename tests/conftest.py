@@ -7,7 +7,7 @@ import pytest
 os.environ.setdefault("OMP_NUM_THREADS", "1")
 
 # A coarse cloth keeps physics tests to seconds.
-SMALL_CLOTH = "cloth: {resolution: [6, 6, 2]}\n"
+SMALL_CLOTH = "cloth: {resolution: [6, 6, 2], vbd: {resolution: [6, 6]}}\n"
 
 
 @pytest.fixture

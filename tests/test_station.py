@@ -32,11 +32,16 @@ EXPECTED_PORTS = {
 }
 
 
+ENGINES = ["vbd", "fem"]
+
+
 class Rig:
     """A station in a simulator, driven by fixed gripper targets."""
 
-    def __init__(self, name="prior", text=SMALL_CLOTH):
-        self.scenario = LoadScenario(scenario_name=name, scenario_text=text)
+    def __init__(self, name="prior", text=SMALL_CLOTH, engine="vbd"):
+        self.scenario = LoadScenario(
+            scenario_name=name, scenario_text=text + f"cloth: {{engine: {engine}}}\n"
+        )
         self.station = MakeClothStation(self.scenario)
         self.simulator = Simulator(self.station)
         AddReleaseMonitor(self.simulator, self.station)
@@ -71,9 +76,13 @@ class Rig:
         return np.asarray(self.port(StationPorts.CLOTH_POSITIONS)).reshape(-1, 3)
 
 
-def test_station_exports_the_documented_ports():
+@pytest.mark.parametrize("engine", ENGINES)
+def test_station_exports_the_documented_ports(engine):
     station = MakeClothStation(
-        LoadScenario(scenario_name="box", scenario_text=SMALL_CLOTH)
+        LoadScenario(
+            scenario_name="box",
+            scenario_text=SMALL_CLOTH + f"cloth: {{engine: {engine}}}",
+        )
     )
     inputs = {
         station.get_input_port(i).get_name() for i in range(station.num_input_ports())
@@ -89,8 +98,9 @@ def test_station_exports_the_documented_ports():
     np.testing.assert_allclose(X_WO.translation(), [0.0, -0.14, 0.0])
 
 
-def test_keypoints_are_ordered_around_the_boundary():
-    rig = Rig()
+@pytest.mark.parametrize("engine", ENGINES)
+def test_keypoints_are_ordered_around_the_boundary(engine):
+    rig = Rig(engine=engine)
     S = rig.keypoints()
     idx = corner_indices(len(S))
     np.testing.assert_allclose(S[idx["s1"]], rig.corners["left"], atol=1e-6)
@@ -102,8 +112,9 @@ def test_keypoints_are_ordered_around_the_boundary():
     assert area == pytest.approx(0.30 * 0.30, rel=1e-6)  # counter-clockwise
 
 
-def test_grasped_corners_follow_a_10cm_lift_within_5mm():
-    rig = Rig()
+@pytest.mark.parametrize("engine", ENGINES)
+def test_grasped_corners_follow_a_10cm_lift_within_5mm(engine):
+    rig = Rig(engine=engine)
     rig.lift(0.10)
     rig.simulator.AdvanceTo(rig.context.get_time() + 0.5)
     S = rig.keypoints()
@@ -115,8 +126,9 @@ def test_grasped_corners_follow_a_10cm_lift_within_5mm():
     assert far < 0.02  # the far edge still lies on the table
 
 
-def test_release_drops_the_cloth_onto_the_table():
-    rig = Rig()
+@pytest.mark.parametrize("engine", ENGINES)
+def test_release_drops_the_cloth_onto_the_table(engine):
+    rig = Rig(engine=engine)
     rig.lift(0.05)
     held = rig.keypoints()[0, 2]
     assert held > 0.04
@@ -130,8 +142,9 @@ def test_release_drops_the_cloth_onto_the_table():
     assert rig.port("left.ee_position_measured")[2] > 0.045
 
 
-def test_fabric_mask_matches_the_projected_cloth():
-    rig = Rig()
+@pytest.mark.parametrize("engine", ENGINES)
+def test_fabric_mask_matches_the_projected_cloth(engine):
+    rig = Rig(engine=engine)
     rig.lift(0.08)
     mask = rig.port(StationPorts.MASK).data[:, :, 0] > 0
     info = rig.station.handles.camera_info

@@ -1,0 +1,461 @@
+"""A triangle-mesh cloth simulated by `newton`'s VBD solver, as a Drake
+LeafSystem co-simulated with the station's MultibodyPlant.
+
+The cloth is a sheet of nx x ny particles (the top face of the station's slab
+mesh). Its state (particle positions and velocities, the grippers' positions
+at the last update, whether the grasps are open) lives in the Context as
+discrete state, advanced by a periodic discrete update at the plant's time
+step with internal substeps, so Simulator resets, context copies and
+recordings work as they do for the plant. The newton model and solver are
+scratch space: every update copies the Context's state in and the result out.
+
+Coupling is one-way: the grippers (read from the plant) move the grasped
+corner patches kinematically and the table and the task object push the
+cloth, but the cloth exerts no force on anything in the plant.
+
+The outputs give the cloth as the FEM slab's vertices (top layer = the
+sheet, bottom layer = the sheet moved one thickness against its normals), so
+everything that reads `cloth.positions` / `cloth.keypoints` works with
+either engine, and a `GeometryConfigurationVector` that places the slab
+geometry this system registered in SceneGraph, so the camera's label and
+depth images and meshcat see the cloth.
+
+Input ports: ``left.gripper_position``, ``right.gripper_position`` (3, world),
+``release`` (1, > 0.5 opens both grasps; latched in state).
+Output ports: ``positions`` (3 x slab vertices), ``keypoints`` (3M),
+``geometry_configuration`` (GeometryConfigurationVector).
+"""
+
+import dataclasses as dc
+import logging
+import os
+
+import numpy as np
+from pydrake.common.value import AbstractValue
+from pydrake.geometry import GeometryConfigurationVector, GeometryId
+from pydrake.math import RigidTransform
+from pydrake.systems.framework import BasicVector, EventStatus, LeafSystem
+
+SIDES = ("left", "right")
+log = logging.getLogger(__name__)
+_WARP_READY = False
+
+
+class ClothDivergedError(RuntimeError):
+    """The cloth simulation produced non-finite or runaway vertices."""
+
+
+@dc.dataclass(frozen=True)
+class BoxCollider:
+    """A static box the cloth collides with: pose of its centre, full size
+    [m], Coulomb friction."""
+
+    X_WB: RigidTransform
+    size: tuple[float, float, float]
+    friction: float
+
+
+@dc.dataclass(frozen=True)
+class VbdSettings:
+    """Solver and material settings in SI units (scenarios/schema.py's
+    `VbdConfig` documents each value)."""
+
+    substeps: int
+    iterations: int
+    stretch_stiffness: float  # N/m
+    area_stiffness: float  # N/m
+    stretch_damping: float  # s
+    bending_stiffness: float  # N m (per radian squared)
+    bending_damping: float  # s
+    areal_density: float  # kg/m^2
+    contact_stiffness: float  # N/m
+    contact_damping: float  # s
+    contact_distance: float  # m
+    surface_contact: bool
+    friction: float
+    runaway_distance: float = 5.0  # m from the world origin
+
+
+def _init_warp():
+    """Imports warp quietly; logs once per process that kernels compile on
+    first use."""
+    global _WARP_READY
+    import warp as wp
+
+    if not _WARP_READY:
+        wp.config.quiet = True
+        wp.config.log_level = wp.LOG_WARNING
+        # Warp's native library prints a CUDA-driver warning on machines
+        # without a GPU; the CPU is what the cloth runs on, so keep it quiet.
+        saved = os.dup(2)
+        try:
+            with open(os.devnull, "w") as null:
+                os.dup2(null.fileno(), 2)
+                wp.init()
+        finally:
+            os.dup2(saved, 2)
+            os.close(saved)
+        cache = os.environ.get("WARP_CACHE_PATH") or wp.config.kernel_cache_dir
+        log.warning(
+            "newton VBD cloth: compiling CPU kernels on first use in this "
+            "process (about a minute the first time on a machine, then "
+            "loaded from the cache %s)",
+            cache or "~/.cache/warp",
+        )
+        _WARP_READY = True
+    return wp
+
+
+def _kernels(wp):
+    """Warp kernels of this module (defined lazily, after warp is imported)."""
+
+    @wp.kernel
+    def hold_grasped(
+        indices: wp.array[wp.int32],
+        side: wp.array[wp.int32],
+        offsets: wp.array[wp.vec3],
+        start: wp.array[wp.vec3],
+        end: wp.array[wp.vec3],
+        holding: wp.array[wp.int32],
+        alpha: float,
+        inv_dt: float,
+        q: wp.array[wp.vec3],
+        qd: wp.array[wp.vec3],
+    ):
+        i = wp.tid()
+        if holding[0] == 0:
+            return
+        s = side[i]
+        p = indices[i]
+        q[p] = start[s] + alpha * (end[s] - start[s]) + offsets[i]
+        qd[p] = (end[s] - start[s]) * inv_dt
+
+    return hold_grasped
+
+
+class ClothSimulator(LeafSystem):
+    """Newton VBD cloth (see module docstring).
+
+    Args:
+        sheet_W: (N, 3) rest positions of the sheet's particles in world.
+        triangles: (T, 3) counter-clockwise (seen from above) particle indices.
+        slab_top: (N,) slab vertex index of each particle (the top layer).
+        slab_bottom: (N,) slab vertex index under each particle.
+        thickness: slab thickness [m] (the bottom layer's offset).
+        keypoint_vertices: (M,) slab vertex indices of the keypoints.
+        grasped: side -> particle indices held by that gripper.
+        grippers_W0: side -> the gripper's world position at rest.
+        colliders: static boxes (table, task object).
+        settings: VbdSettings.
+        time_step: period of the discrete update [s].
+        geometry_id: the slab geometry registered in SceneGraph (or None).
+    """
+
+    def __init__(
+        self,
+        *,
+        sheet_W: np.ndarray,
+        triangles: np.ndarray,
+        slab_top: np.ndarray,
+        slab_bottom: np.ndarray,
+        thickness: float,
+        keypoint_vertices: np.ndarray,
+        grasped: dict,
+        grippers_W0: dict,
+        colliders: list[BoxCollider],
+        settings: VbdSettings,
+        time_step: float,
+        geometry_id: GeometryId | None = None,
+    ):
+        super().__init__()
+        if settings.substeps % 2:
+            raise ValueError("vbd substeps must be even (graph capture swaps states)")
+        self._sheet0 = np.asarray(sheet_W, dtype=float)
+        self._n = len(self._sheet0)
+        self._tris = np.asarray(triangles, dtype=np.int32)
+        self._top = np.asarray(slab_top)
+        self._bottom = np.asarray(slab_bottom)
+        self._num_slab = 2 * self._n
+        self._thickness = thickness
+        self._kp = np.asarray(keypoint_vertices)
+        self._grasped = {s: np.asarray(grasped[s], dtype=np.int32) for s in SIDES}
+        self._dt = time_step
+        self._settings = settings
+        self._colliders = list(colliders)
+        self._geometry_id = geometry_id
+        self._engine = None  # built on first update (kernels compile then)
+
+        self._grippers_W0 = {s: np.asarray(grippers_W0[s], float) for s in SIDES}
+        g0 = np.concatenate([grippers_W0[s] for s in SIDES])
+        x0 = np.concatenate([self._sheet0.ravel(), np.zeros(3 * self._n)])
+        self._cloth_state = self.DeclareDiscreteState(BasicVector(x0))
+        self._gripper_state = self.DeclareDiscreteState(BasicVector(g0))
+        self._released_state = self.DeclareDiscreteState(1)
+        self._grippers = {
+            s: self.DeclareVectorInputPort(f"{s}.gripper_position", 3) for s in SIDES
+        }
+        self._release = self.DeclareVectorInputPort("release", 1)
+        self.DeclarePeriodicDiscreteUpdateEvent(time_step, 0.0, self._update)
+        self.DeclareVectorOutputPort(
+            "positions",
+            3 * self._num_slab,
+            self._calc_positions,
+            {self.discrete_state_ticket(self._cloth_state)},
+        )
+        self.DeclareVectorOutputPort(
+            "keypoints",
+            3 * len(self._kp),
+            self._calc_keypoints,
+            {self.discrete_state_ticket(self._cloth_state)},
+        )
+        self.DeclareAbstractOutputPort(
+            "geometry_configuration",
+            lambda: AbstractValue.Make(GeometryConfigurationVector()),
+            self._calc_configuration,
+            {self.discrete_state_ticket(self._cloth_state)},
+        )
+
+    # ----- outputs -------------------------------------------------------
+    @property
+    def num_slab_vertices(self) -> int:
+        return self._num_slab
+
+    def _sheet(self, context) -> np.ndarray:
+        x = context.get_discrete_state(self._cloth_state).value()
+        return x[: 3 * self._n].reshape(-1, 3)
+
+    def SlabPositions(self, sheet: np.ndarray) -> np.ndarray:
+        """(2N, 3) slab vertices: the sheet on top, one thickness below it
+        along the area-weighted vertex normals."""
+        a, b, c = (sheet[self._tris[:, k]] for k in range(3))
+        face = np.cross(b - a, c - a)
+        normals = np.zeros_like(sheet)
+        for k in range(3):
+            np.add.at(normals, self._tris[:, k], face)
+        length = np.linalg.norm(normals, axis=1, keepdims=True)
+        normals = np.where(length > 1e-12, normals / np.maximum(length, 1e-12), 0.0)
+        normals[length[:, 0] <= 1e-12] = [0.0, 0.0, 1.0]
+        slab = np.empty((self._num_slab, 3))
+        slab[self._top] = sheet
+        slab[self._bottom] = sheet - self._thickness * normals
+        return slab
+
+    def _calc_positions(self, context, output: BasicVector):
+        output.SetFromVector(self.SlabPositions(self._sheet(context)).ravel())
+
+    def _calc_keypoints(self, context, output: BasicVector):
+        slab = self.SlabPositions(self._sheet(context))
+        output.SetFromVector(slab[self._kp].ravel())
+
+    def _calc_configuration(self, context, output):
+        config = GeometryConfigurationVector()
+        if self._geometry_id is not None:
+            slab = self.SlabPositions(self._sheet(context))
+            config.set_value(self._geometry_id, slab.ravel())
+        output.set_value(config)
+
+    # ----- dynamics ------------------------------------------------------
+    def _update(self, context, discrete_state) -> EventStatus:
+        engine = self._engine or self._build()
+        x = context.get_discrete_state(self._cloth_state).value()
+        g_start = context.get_discrete_state(self._gripper_state).value()
+        released = context.get_discrete_state(self._released_state).value()[0] > 0.5
+        if self._release.HasValue(context) and self._release.Eval(context)[0] > 0.5:
+            released = True
+        g_end = np.concatenate(
+            [
+                self._grippers[s].Eval(context)
+                if self._grippers[s].HasValue(context)
+                else g_start[3 * i : 3 * i + 3]
+                for i, s in enumerate(SIDES)
+            ]
+        )
+        q_new, qd_new = engine.step(x, g_start, g_end, held=not released)
+        bad = ~np.isfinite(q_new).all() or (
+            np.abs(q_new).max() > self._settings.runaway_distance
+        )
+        if bad:
+            raise ClothDivergedError(
+                f"vbd cloth diverged at t = {context.get_time():.3f} s "
+                "(non-finite or runaway vertices)"
+            )
+        discrete_state.get_mutable_vector(self._cloth_state).SetFromVector(
+            np.concatenate([q_new.ravel(), qd_new.ravel()])
+        )
+        discrete_state.get_mutable_vector(self._gripper_state).SetFromVector(g_end)
+        discrete_state.get_mutable_vector(self._released_state).SetAtIndex(
+            0, 1.0 if released else 0.0
+        )
+        return EventStatus.Succeeded()
+
+    def _build(self):
+        self._engine = _VbdEngine(
+            sheet_W=self._sheet0,
+            triangles=self._tris,
+            grasped=self._grasped,
+            grippers_W0=self._grippers_W0,
+            colliders=self._colliders,
+            settings=self._settings,
+            time_step=self._dt,
+        )
+        return self._engine
+
+
+class _VbdEngine:
+    """The newton model, solver and captured step behind ClothSimulator."""
+
+    def __init__(
+        self,
+        *,
+        sheet_W,
+        triangles,
+        grasped,
+        grippers_W0,
+        colliders,
+        settings: VbdSettings,
+        time_step,
+    ):
+        wp = _init_warp()
+        import newton
+        from newton.solvers import SolverVBD
+
+        self._wp = wp
+        self._dt = time_step
+        self._s = settings
+        builder = newton.ModelBuilder(gravity=(0.0, 0.0, -9.81))
+        for box in colliders:
+            cfg = newton.ModelBuilder.ShapeConfig(
+                mu=box.friction,
+                ke=settings.contact_stiffness,
+                kd=settings.contact_damping,
+            )
+            p = box.X_WB.translation()
+            q = box.X_WB.rotation().ToQuaternion()  # w, x, y, z
+            builder.add_shape_box(
+                -1,
+                xform=wp.transform(wp.vec3(*p), wp.quat(q.x(), q.y(), q.z(), q.w())),
+                hx=box.size[0] / 2,
+                hy=box.size[1] / 2,
+                hz=box.size[2] / 2,
+                cfg=cfg,
+            )
+        builder.add_cloth_mesh(
+            pos=wp.vec3(0.0, 0.0, 0.0),
+            rot=wp.quat_identity(),
+            scale=1.0,
+            vel=wp.vec3(0.0, 0.0, 0.0),
+            vertices=[wp.vec3(*v) for v in sheet_W],
+            indices=np.asarray(triangles).ravel().tolist(),
+            density=settings.areal_density,
+            tri_ke=settings.stretch_stiffness,
+            tri_ka=settings.area_stiffness,
+            tri_kd=settings.stretch_damping,
+            edge_ke=settings.bending_stiffness,
+            edge_kd=settings.bending_damping,
+            particle_radius=settings.contact_distance,
+        )
+        builder.color(include_bending=True)
+        model = builder.finalize(device="cpu", requires_grad=False)
+        model.soft_contact_ke = settings.contact_stiffness
+        model.soft_contact_kd = settings.contact_damping
+        model.soft_contact_mu = settings.friction
+        self._model = model
+        self._solver = SolverVBD(model, iterations=settings.iterations)
+        self._pipeline = newton.CollisionPipeline(
+            model,
+            soft_contact_gap=settings.contact_distance,
+            enable_rigid_soft_full_surface_contact=settings.surface_contact,
+        )
+        self._contacts = self._pipeline.contacts()
+        self._states = [model.state(), model.state()]
+        self._control = model.control()
+
+        idx = np.concatenate([grasped[s] for s in SIDES]).astype(np.int32)
+        side = np.concatenate(
+            [np.full(len(grasped[s]), i, np.int32) for i, s in enumerate(SIDES)]
+        )
+        self._held_idx = idx
+        self._free_flags = model.particle_flags.numpy().copy()
+        self._free_mass = model.particle_mass.numpy().copy()
+        self._free_inv_mass = model.particle_inv_mass.numpy().copy()
+        self._idx = wp.array(idx, dtype=wp.int32, device="cpu")
+        self._side = wp.array(side, dtype=wp.int32, device="cpu")
+        self._offsets = wp.zeros(len(idx), dtype=wp.vec3, device="cpu")
+        self._start = wp.zeros(2, dtype=wp.vec3, device="cpu")
+        self._end = wp.zeros(2, dtype=wp.vec3, device="cpu")
+        self._holding = wp.zeros(1, dtype=wp.int32, device="cpu")
+        # Each held particle keeps its rest offset from its gripper.
+        g0 = np.stack([grippers_W0[s] for s in SIDES])
+        self._offsets.numpy()[:] = np.asarray(sheet_W)[idx] - g0[side]
+        self._n = len(sheet_W)
+        self._hold = _kernels(wp)
+        self._graph = None
+        self._held = None
+
+    def _set_held(self, held: bool) -> None:
+        if held == self._held:
+            return
+        m = self._model
+        flags = self._free_flags.copy()
+        mass = self._free_mass.copy()
+        inv_mass = self._free_inv_mass.copy()
+        if held:
+            from newton import ParticleFlags
+
+            flags[self._held_idx] &= ~int(ParticleFlags.ACTIVE)
+            mass[self._held_idx] = 0.0
+            inv_mass[self._held_idx] = 0.0
+        m.particle_flags.numpy()[:] = flags
+        m.particle_mass.numpy()[:] = mass
+        m.particle_inv_mass.numpy()[:] = inv_mass
+        self._holding.numpy()[0] = 1 if held else 0
+        self._held = held
+
+    def _simulate(self):
+        wp = self._wp
+        n = self._s.substeps
+        h = self._dt / n
+        for k in range(n):
+            s0, s1 = self._states[k % 2], self._states[(k + 1) % 2]
+            wp.launch(
+                self._hold,
+                dim=len(self._held_idx),
+                inputs=[
+                    self._idx,
+                    self._side,
+                    self._offsets,
+                    self._start,
+                    self._end,
+                    self._holding,
+                    float(k + 1) / n,
+                    1.0 / self._dt,
+                    s0.particle_q,
+                    s0.particle_qd,
+                ],
+                device="cpu",
+            )
+            s0.clear_forces()
+            self._pipeline.collide(s0, self._contacts)
+            self._solver.step(s0, s1, self._control, self._contacts, h)
+
+    def step(self, x, g_start, g_end, *, held: bool):
+        wp = self._wp
+        n = self._n
+        self._set_held(held)
+        s0 = self._states[0]
+        s0.particle_q.numpy()[:] = x[: 3 * n].reshape(-1, 3)
+        s0.particle_qd.numpy()[:] = x[3 * n :].reshape(-1, 3)
+        self._start.numpy()[:] = g_start.reshape(2, 3)
+        self._end.numpy()[:] = g_end.reshape(2, 3)
+        if self._graph is None:
+            self._simulate()  # compiles and warms up the kernels
+            s0.particle_q.numpy()[:] = x[: 3 * n].reshape(-1, 3)
+            s0.particle_qd.numpy()[:] = x[3 * n :].reshape(-1, 3)
+            with wp.ScopedCapture(device="cpu") as capture:
+                self._simulate()
+            self._graph = capture.graph
+        wp.capture_launch(self._graph)
+        return (
+            self._states[0].particle_q.numpy().copy(),
+            self._states[0].particle_qd.numpy().copy(),
+        )
