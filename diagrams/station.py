@@ -138,7 +138,7 @@ def PoseOnTable(pose: list[float], z: float = 0.0) -> RigidTransform:
 def GraspCorners(scenario: Scenario) -> dict[str, np.ndarray]:
     """World positions of the grasped corners (top face) at the start."""
     cloth = scenario.cloth
-    X_WC = PoseOnTable(cloth.pose, cloth.thickness / 2)
+    X_WC = ClothPose(scenario)
     hx, hy, hz = cloth.size[0] / 2, cloth.size[1] / 2, cloth.thickness / 2
     return {
         "left": X_WC @ np.array([-hx, -hy, hz]),
@@ -152,34 +152,56 @@ def _friction_props(mu: float) -> ProximityProperties:
     return props
 
 
+def _static_boxes(scenario: Scenario, X_WO: RigidTransform) -> dict:
+    """Name -> (X_WB box centre in world, size, friction) of the table and the
+    task object (if any)."""
+    table, obj = scenario.table, scenario.object
+    boxes = {
+        "table": (
+            RigidTransform([0, 0, -table.size[2] / 2]),
+            table.size,
+            table.friction,
+        )
+    }
+    if obj.kind != "none":
+        boxes["object"] = (
+            X_WO @ RigidTransform([0, 0, obj.size[2] / 2]),
+            obj.size,
+            obj.friction,
+        )
+    return boxes
+
+
 def _add_table_and_object(plant: MultibodyPlant, scenario: Scenario) -> RigidTransform:
-    table = scenario.table
+    obj = scenario.object
+    X_WO = PoseOnTable(obj.pose)
+    boxes = _static_boxes(scenario, X_WO)
+    X_WB, size, mu = boxes["table"]
     _register_box(
         plant,
         plant.world_body(),
-        RigidTransform([0, 0, -table.size[2] / 2]),
-        table.size,
+        X_WB,
+        size,
         "table",
-        table.friction,
+        mu,
         Rgba(0.72, 0.56, 0.40, 1.0),
         TABLE_LABEL,
     )
-    obj = scenario.object
-    X_WO = PoseOnTable(obj.pose)
-    if obj.kind != "none":
+    if "object" in boxes:
         body = plant.AddRigidBody(
             "object",
             plant.AddModelInstance("object"),
             SpatialInertia.SolidBoxWithMass(1.0, *obj.size),
         )
         plant.WeldFrames(plant.world_frame(), body.body_frame(), X_WO)
+        X_WB, size, mu = boxes["object"]
         _register_box(
             plant,
             body,
-            RigidTransform([0, 0, obj.size[2] / 2]),
-            obj.size,
+            X_WO.inverse() @ X_WB,
+            size,
             obj.kind,
-            obj.friction,
+            mu,
             Rgba(0.25, 0.35, 0.75, 1.0),
             OBJECT_LABEL,
         )
@@ -204,18 +226,30 @@ def _perception(color: Rgba, label: int) -> PerceptionProperties:
     return perception
 
 
-def _add_cloth(plant: MultibodyPlant, scenario: Scenario, mesh: ClothMesh):
-    cloth = scenario.cloth
-    X_WC = PoseOnTable(cloth.pose, cloth.thickness / 2)
+def ClothPose(scenario: Scenario) -> RigidTransform:
+    """X_WC of the cloth frame C (the slab's centre) at rest on the table."""
+    return PoseOnTable(scenario.cloth.pose, scenario.cloth.thickness / 2)
+
+
+def _cloth_instance(mesh: ClothMesh, X_WC: RigidTransform) -> GeometryInstance:
+    """The slab as a deformable geometry with illustration and perception
+    (render label) roles, for either engine."""
     shape = Mesh(InMemoryMesh(mesh_file=MemoryFile(mesh.to_vtk(), ".vtk", "cloth.vtk")))
     instance = GeometryInstance(X_WC, shape, "cloth")
-    instance.set_proximity_properties(_friction_props(cloth.friction))
     instance.set_illustration_properties(
         MakePhongIllustrationProperties([0.85, 0.15, 0.15, 1.0])
     )
     instance.set_perception_properties(
         _perception(Rgba(0.85, 0.15, 0.15, 1.0), CLOTH_LABEL)
     )
+    return instance
+
+
+def _add_cloth(plant: MultibodyPlant, scenario: Scenario, mesh: ClothMesh):
+    cloth = scenario.cloth
+    X_WC = ClothPose(scenario)
+    instance = _cloth_instance(mesh, X_WC)
+    instance.set_proximity_properties(_friction_props(cloth.friction))
     config = DeformableBodyConfig()
     config.set_youngs_modulus(cloth.youngs_modulus)
     config.set_poissons_ratio(cloth.poissons_ratio)
@@ -261,34 +295,14 @@ def _add_vbd_cloth(builder, scene_graph, scenario, mesh, X_WC, X_WO):
 
     cloth, vbd = scenario.cloth, scenario.cloth.vbd
     source = scene_graph.RegisterSource("vbd_cloth")
-    shape = Mesh(InMemoryMesh(mesh_file=MemoryFile(mesh.to_vtk(), ".vtk", "cloth.vtk")))
-    instance = GeometryInstance(X_WC, shape, "cloth")
-    instance.set_illustration_properties(
-        MakePhongIllustrationProperties([0.85, 0.15, 0.15, 1.0])
-    )
-    instance.set_perception_properties(
-        _perception(Rgba(0.85, 0.15, 0.15, 1.0), CLOTH_LABEL)
-    )
     geometry_id = scene_graph.RegisterDeformableGeometry(
-        source, scene_graph.world_frame_id(), instance, 1.0
+        source, scene_graph.world_frame_id(), _cloth_instance(mesh, X_WC), 1.0
     )
     top = mesh.top_layer.ravel()
-    table, obj = scenario.table, scenario.object
     colliders = [
-        BoxCollider(
-            RigidTransform([0, 0, -table.size[2] / 2]),
-            tuple(table.size),
-            table.friction,
-        )
+        BoxCollider(X_WB, tuple(size), mu)
+        for X_WB, size, mu in _static_boxes(scenario, X_WO).values()
     ]
-    if obj.kind != "none":
-        colliders.append(
-            BoxCollider(
-                X_WO @ RigidTransform([0, 0, obj.size[2] / 2]),
-                tuple(obj.size),
-                obj.friction,
-            )
-        )
     fields = {f.name for f in dc.fields(VbdSettings)}
     settings = VbdSettings(
         friction=cloth.friction,
@@ -444,10 +458,7 @@ def MakeClothStation(
     if fem:
         cloth_id, X_WC = _add_cloth(plant, scenario, mesh)
     else:
-        cloth_id, X_WC = (
-            None,
-            PoseOnTable(scenario.cloth.pose, scenario.cloth.thickness / 2),
-        )
+        cloth_id, X_WC = None, ClothPose(scenario)
     corners = GraspCorners(scenario)
     dt = scenario.plant_config.time_step
     weld_ids, clips = [], []

@@ -69,7 +69,7 @@ class VbdSettings:
     bending_damping: float  # s
     areal_density: float  # kg/m^2
     contact_stiffness: float  # N/m
-    contact_damping: float  # s
+    contact_damping: float  # N s/m
     contact_distance: float  # m
     surface_contact: bool
     friction: float
@@ -106,8 +106,19 @@ def _init_warp():
     return wp
 
 
-def _kernels(wp):
-    """Warp kernels of this module (defined lazily, after warp is imported)."""
+_HOLD_KERNEL = None
+
+
+def _hold_kernel(wp):
+    """The kernel that moves held particles with their grippers (defined
+    once per process, after warp is imported)."""
+    global _HOLD_KERNEL
+    if _HOLD_KERNEL is None:
+        _HOLD_KERNEL = _define_hold_kernel(wp)
+    return _HOLD_KERNEL
+
+
+def _define_hold_kernel(wp):
 
     @wp.kernel
     def hold_grasped(
@@ -178,6 +189,10 @@ class ClothSimulator(LeafSystem):
         self._num_slab = 2 * self._n
         self._thickness = thickness
         self._kp = np.asarray(keypoint_vertices)
+        sheet_of_slab = {v: i for i, v in enumerate(self._top)}
+        if not all(v in sheet_of_slab for v in self._kp):
+            raise ValueError("keypoint vertices must lie on the slab's top layer")
+        self._kp_sheet = np.array([sheet_of_slab[v] for v in self._kp])
         self._grasped = {s: np.asarray(grasped[s], dtype=np.int32) for s in SIDES}
         self._dt = time_step
         self._settings = settings
@@ -233,8 +248,9 @@ class ClothSimulator(LeafSystem):
         for k in range(3):
             np.add.at(normals, self._tris[:, k], face)
         length = np.linalg.norm(normals, axis=1, keepdims=True)
-        normals = np.where(length > 1e-12, normals / np.maximum(length, 1e-12), 0.0)
-        normals[length[:, 0] <= 1e-12] = [0.0, 0.0, 1.0]
+        degenerate = length[:, 0] <= 1e-12  # collapsed triangles: point up
+        normals[degenerate], length[degenerate] = [0.0, 0.0, 1.0], 1.0
+        normals /= length
         slab = np.empty((self._num_slab, 3))
         slab[self._top] = sheet
         slab[self._bottom] = sheet - self._thickness * normals
@@ -244,8 +260,8 @@ class ClothSimulator(LeafSystem):
         output.SetFromVector(self.SlabPositions(self._sheet(context)).ravel())
 
     def _calc_keypoints(self, context, output: BasicVector):
-        slab = self.SlabPositions(self._sheet(context))
-        output.SetFromVector(slab[self._kp].ravel())
+        # Keypoints are top-face vertices: particles themselves.
+        output.SetFromVector(self._sheet(context)[self._kp_sheet].ravel())
 
     def _calc_configuration(self, context, output):
         config = GeometryConfigurationVector()
@@ -271,10 +287,8 @@ class ClothSimulator(LeafSystem):
             ]
         )
         q_new, qd_new = engine.step(x, g_start, g_end, held=not released)
-        bad = ~np.isfinite(q_new).all() or (
-            np.abs(q_new).max() > self._settings.runaway_distance
-        )
-        if bad:
+        finite = bool(np.isfinite(q_new).all())
+        if not finite or np.abs(q_new).max() > self._settings.runaway_distance:
             raise ClothDivergedError(
                 f"vbd cloth diverged at t = {context.get_time():.3f} s "
                 "(non-finite or runaway vertices)"
@@ -388,7 +402,7 @@ class _VbdEngine:
         g0 = np.stack([grippers_W0[s] for s in SIDES])
         self._offsets.numpy()[:] = np.asarray(sheet_W)[idx] - g0[side]
         self._n = len(sheet_W)
-        self._hold = _kernels(wp)
+        self._hold = _hold_kernel(wp)
         self._graph = None
         self._held = None
 

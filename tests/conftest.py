@@ -10,6 +10,15 @@ os.environ.setdefault("OMP_NUM_THREADS", "1")
 SMALL_CLOTH = "cloth: {resolution: [6, 6, 2], vbd: {resolution: [6, 6]}}\n"
 
 
+def SmallCloth(engine: str) -> str:
+    """SMALL_CLOTH on the given cloth engine (one `cloth` mapping: a second
+    `cloth:` key would replace the first)."""
+    return (
+        f"cloth: {{engine: {engine}, resolution: [6, 6, 2], "
+        "vbd: {resolution: [6, 6]}}\n"
+    )
+
+
 @pytest.fixture
 def rng():
     return np.random.default_rng(0)

@@ -13,7 +13,7 @@ from fabric_imitation.scenarios.loader import LoadScenario
 from pydrake.math import RigidTransform
 from pydrake.systems.analysis import Simulator
 
-from tests.conftest import SMALL_CLOTH
+from tests.conftest import SmallCloth
 
 EXPECTED_PORTS = {
     "inputs": {"left.ee_target", "right.ee_target", "release"},
@@ -38,9 +38,9 @@ ENGINES = ["vbd", "fem"]
 class Rig:
     """A station in a simulator, driven by fixed gripper targets."""
 
-    def __init__(self, name="prior", text=SMALL_CLOTH, engine="vbd"):
+    def __init__(self, name="prior", engine="vbd"):
         self.scenario = LoadScenario(
-            scenario_name=name, scenario_text=text + f"cloth: {{engine: {engine}}}\n"
+            scenario_name=name, scenario_text=SmallCloth(engine)
         )
         self.station = MakeClothStation(self.scenario)
         self.simulator = Simulator(self.station)
@@ -79,10 +79,7 @@ class Rig:
 @pytest.mark.parametrize("engine", ENGINES)
 def test_station_exports_the_documented_ports(engine):
     station = MakeClothStation(
-        LoadScenario(
-            scenario_name="box",
-            scenario_text=SMALL_CLOTH + f"cloth: {{engine: {engine}}}",
-        )
+        LoadScenario(scenario_name="box", scenario_text=SmallCloth(engine))
     )
     inputs = {
         station.get_input_port(i).get_name() for i in range(station.num_input_ports())
