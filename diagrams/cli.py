@@ -249,6 +249,11 @@ def _add_evaluate(p):
     p.add_argument("--seed", type=int, default=0, help="seed of the trial poses")
     p.add_argument("--demo", type=Path, default=None)
     p.add_argument("--priors", type=Path, default=None)
+    p.add_argument(
+        "--scenario_text",
+        default="",
+        help='YAML overrides for every scenario, e.g. "cloth: {engine: fem}"',
+    )
 
 
 @command("evaluate")(_add_evaluate)
@@ -264,6 +269,7 @@ def _evaluate(args) -> dict:
         seed=args.seed,
         demo=args.demo,
         priors=args.priors,
+        scenario_text=args.scenario_text,
     )
 
 

@@ -27,6 +27,22 @@ METHODS = {
 }
 
 
+def TrialScenario(name: str, text: str, pose: list[float] | None):
+    """Scenario `name` with the YAML overrides `text` and, if given, the
+    trial's object pose on top."""
+    import yaml
+
+    overrides = yaml.safe_load(text) if text.strip() else {}
+    if not isinstance(overrides, dict):
+        raise InputError(f"--scenario_text is not a YAML mapping: {text!r}")
+    if pose is not None:
+        overrides["object"] = {**overrides.get("object", {}), "pose": pose}
+    return LoadScenario(
+        scenario_name=name,
+        scenario_text=yaml.safe_dump(overrides) if overrides else "",
+    )
+
+
 def TrialPoses(
     scenario_name: str,
     *,
@@ -34,10 +50,11 @@ def TrialPoses(
     seed: int,
     max_shift: float = 0.10,
     max_yaw_deg: float = 45.0,
+    scenario_text: str = "",
 ) -> list[list[float]]:
     """Object poses moved up to `max_shift` and turned up to `max_yaw_deg` from
     the scenario's; poses outside the workspace or on the cloth are redrawn."""
-    base = LoadScenario(scenario_name=scenario_name)
+    base = TrialScenario(scenario_name, scenario_text, None)
     rng = np.random.default_rng(seed)
     poses = []
     while len(poses) < trials:
@@ -51,9 +68,7 @@ def TrialPoses(
             round(p[2] + yaw, 2),
         ]
         try:
-            LoadScenario(
-                scenario_name=scenario_name, scenario_text=f"object: {{pose: {pose}}}"
-            )
+            TrialScenario(scenario_name, scenario_text, pose)
         except InputError:
             continue
         poses.append(pose)
@@ -64,9 +79,7 @@ def _run_trial(job: dict) -> dict:
     import torch
 
     torch.set_num_threads(1)
-    scenario = LoadScenario(
-        scenario_name=job["scenario"], scenario_text=f"object: {{pose: {job['pose']}}}"
-    )
+    scenario = TrialScenario(job["scenario"], job["scenario_text"], job["pose"])
     t0 = time.perf_counter()
     if job["method"] == "scripted":
         from fabric_imitation.diagrams.demos import ScriptedDemoPlan
@@ -137,11 +150,13 @@ def Evaluate(
     seed: int = 0,
     demo: Path | None = None,
     priors: Path | None = None,
+    scenario_text: str = "",
     progress: bool = True,
 ) -> dict:
     """Runs `trials` trials per scenario and method (resumable via `out`,
     a JSON-lines file of finished trials); writes `out`.summary.json and a
-    bar plot `out`.png."""
+    bar plot `out`.png. `scenario_text` (YAML) overrides every scenario, e.g.
+    "cloth: {engine: fem}"."""
     unknown = [m for m in methods if m not in METHODS]
     if unknown:
         raise InputError(f"unknown method(s) {unknown}; known: {', '.join(METHODS)}")
@@ -156,7 +171,7 @@ def Evaluate(
             done[(row["scenario"], row["method"], row["trial"])] = row
     jobs = []
     for name in scenario_names:
-        poses = TrialPoses(name, trials=trials, seed=seed)
+        poses = TrialPoses(name, trials=trials, seed=seed, scenario_text=scenario_text)
         for method in methods:
             for i, pose in enumerate(poses):
                 if (name, method, i) not in done:
@@ -168,6 +183,7 @@ def Evaluate(
                             "pose": pose,
                             "demo": str(demo) if demo else None,
                             "priors": str(priors) if priors else None,
+                            "scenario_text": scenario_text,
                         }
                     )
     bar = None

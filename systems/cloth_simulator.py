@@ -27,6 +27,7 @@ Output ports: ``positions`` (3 x slab vertices), ``keypoints`` (3M),
 """
 
 import dataclasses as dc
+import glob
 import logging
 import os
 
@@ -77,8 +78,8 @@ class VbdSettings:
 
 
 def _init_warp():
-    """Imports warp quietly; logs once per process that kernels compile on
-    first use."""
+    """Imports and initialises warp quietly; says in one log line when
+    newton's kernels are not in the kernel cache yet (they compile now)."""
     global _WARP_READY
     import warp as wp
 
@@ -95,13 +96,13 @@ def _init_warp():
         finally:
             os.dup2(saved, 2)
             os.close(saved)
-        cache = os.environ.get("WARP_CACHE_PATH") or wp.config.kernel_cache_dir
-        log.warning(
-            "newton VBD cloth: compiling CPU kernels on first use in this "
-            "process (about a minute the first time on a machine, then "
-            "loaded from the cache %s)",
-            cache or "~/.cache/warp",
-        )
+        cache = wp.config.kernel_cache_dir or os.path.expanduser("~/.cache/warp")
+        if not glob.glob(os.path.join(cache, "wp_newton*vbd*particle_vbd_kernels*")):
+            log.warning(
+                "newton VBD cloth: compiling its CPU kernels (once per machine, "
+                "about a minute; cached in %s for later runs)",
+                cache,
+            )
         _WARP_READY = True
     return wp
 

@@ -112,3 +112,17 @@ def test_cli_reports_bad_input_in_one_line_with_nonzero_exit(tmp_path):
     assert result.stderr.strip().count("\n") == 0
     assert "unknown scenario 'nope'" in result.stderr
     assert not out.exists()
+
+
+def test_evaluate_scenario_text_applies_to_every_trial_pose():
+    from fabric_imitation.diagrams.evaluate import TrialPoses, TrialScenario
+
+    text = "cloth: {engine: fem}\nobject: {friction: 0.8}"
+    poses = TrialPoses("box", trials=3, seed=1, scenario_text=text)
+    assert poses == TrialPoses("box", trials=3, seed=1)  # same seeded poses
+    s = TrialScenario("box", text, poses[0])
+    assert s.cloth.engine == "fem" and s.object.friction == 0.8
+    assert s.object.pose == poses[0] and s.object.kind == "box"
+    assert TrialScenario("box", "", None).cloth.engine == "vbd"
+    with pytest.raises(InputError, match="not a YAML mapping"):
+        TrialScenario("box", "- 1", None)
