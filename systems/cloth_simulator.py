@@ -232,10 +232,6 @@ class ClothSimulator(LeafSystem):
         )
 
     # ----- outputs -------------------------------------------------------
-    @property
-    def num_slab_vertices(self) -> int:
-        return self._num_slab
-
     def _sheet(self, context) -> np.ndarray:
         x = context.get_discrete_state(self._cloth_state).value()
         return x[: 3 * self._n].reshape(-1, 3)
@@ -455,17 +451,19 @@ class _VbdEngine:
 
     def step(self, x, g_start, g_end, *, held: bool):
         wp = self._wp
-        n = self._n
-        self._set_held(held)
         s0 = self._states[0]
-        s0.particle_q.numpy()[:] = x[: 3 * n].reshape(-1, 3)
-        s0.particle_qd.numpy()[:] = x[3 * n :].reshape(-1, 3)
+
+        def load():  # the Context's state into newton's (zero-copy views)
+            s0.particle_q.numpy()[:] = x[: 3 * self._n].reshape(-1, 3)
+            s0.particle_qd.numpy()[:] = x[3 * self._n :].reshape(-1, 3)
+
+        self._set_held(held)
+        load()
         self._start.numpy()[:] = g_start.reshape(2, 3)
         self._end.numpy()[:] = g_end.reshape(2, 3)
         if self._graph is None:
             self._simulate()  # compiles and warms up the kernels
-            s0.particle_q.numpy()[:] = x[: 3 * n].reshape(-1, 3)
-            s0.particle_qd.numpy()[:] = x[3 * n :].reshape(-1, 3)
+            load()
             with wp.ScopedCapture(device="cpu") as capture:
                 self._simulate()
             self._graph = capture.graph
