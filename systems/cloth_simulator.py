@@ -212,7 +212,7 @@ class ClothSimulator(LeafSystem):
         }
         self._release = self.DeclareVectorInputPort("release", 1)
         self.DeclarePeriodicDiscreteUpdateEvent(time_step, 0.0, self._update)
-        self.DeclareVectorOutputPort(
+        self._positions = self.DeclareVectorOutputPort(
             "positions",
             3 * self._num_slab,
             self._calc_positions,
@@ -263,8 +263,8 @@ class ClothSimulator(LeafSystem):
     def _calc_configuration(self, context, output):
         config = GeometryConfigurationVector()
         if self._geometry_id is not None:
-            slab = self.SlabPositions(self._sheet(context))
-            config.set_value(self._geometry_id, slab.ravel())
+            # The cached `positions` output: the normals are computed once.
+            config.set_value(self._geometry_id, self._positions.Eval(context))
         output.set_value(config)
 
     # ----- dynamics ------------------------------------------------------
