@@ -16,6 +16,7 @@ from pathlib import Path
 
 import numpy as np
 from fabric_imitation.learning.errors import InputError
+from fabric_imitation.learning.safety import RULES
 from fabric_imitation.scenarios.loader import LoadScenario
 
 METHODS = {
@@ -75,6 +76,30 @@ def TrialPoses(
     return poses
 
 
+# What each worker learned from the demos, by scenario name: set once per
+# process (`_set_prepared`), so f_A is trained once per scenario, not per trial.
+_PREPARED: dict = {}
+
+
+def _set_prepared(prepared: dict) -> None:
+    import torch
+
+    torch.set_num_threads(1)
+    _PREPARED.update(prepared)
+
+
+def _prepare(job: dict):
+    """PrepareImitation for the scenario of `job` (at its base pose)."""
+    from fabric_imitation.diagrams.imitation import DefaultDemoDir, PrepareImitation
+
+    scenario = TrialScenario(job["scenario"], job["scenario_text"], None)
+    return PrepareImitation(
+        scenario,
+        demo_dir=job.get("demo") or DefaultDemoDir(job["scenario"], scenario),
+        priors_dir=job.get("priors"),
+    )
+
+
 def _run_trial(job: dict) -> dict:
     import torch
 
@@ -100,8 +125,7 @@ def _run_trial(job: dict) -> dict:
         summary = Imitate(
             scenario=scenario,
             scenario_name=job["scenario"],
-            demo_dir=job.get("demo"),
-            priors_dir=job.get("priors"),
+            prepared=_PREPARED[job["scenario"]],
             mpc_config=dc.replace(scenario.mpc, **METHODS[job["method"]]),
             progress=False,
             seed=job["trial"],
@@ -127,6 +151,18 @@ def _aggregate(rows: list[dict]) -> dict:
                 "executed_violations": int(sum(r["executed_violations"] for r in rows)),
                 "executed_violations_ground_truth": int(
                     sum(r["executed_violations_ground_truth"] for r in rows)
+                ),
+                "rule_breaks_true": {
+                    rule: int(
+                        sum(r.get("rule_breaks_true", {}).get(rule, 0) for r in rows)
+                    )
+                    for rule in ("any", *RULES)
+                },
+                "trials_with_true_rule_breaks": int(
+                    sum(r["executed_violations_ground_truth"] > 0 for r in rows)
+                ),
+                "trial_seconds_mean": round(
+                    float(np.mean([r["trial_seconds"] for r in rows])), 1
                 ),
                 "terminations": {
                     t: sum(r["termination"] == t for r in rows)
@@ -186,6 +222,14 @@ def Evaluate(
                             "scenario_text": scenario_text,
                         }
                     )
+    # Learn from each scenario's demo once (f_R on its frames, f_A), here,
+    # and hand the result to every worker.
+    prepared, prepare_seconds = {}, {}
+    for job in jobs:
+        if job["method"] != "scripted" and job["scenario"] not in prepared:
+            t0 = time.perf_counter()
+            prepared[job["scenario"]] = _prepare(job)
+            prepare_seconds[job["scenario"]] = round(time.perf_counter() - t0, 1)
     bar = None
     if progress:
         from tqdm import tqdm
@@ -203,12 +247,15 @@ def Evaluate(
             bar.update()
 
     if workers == 1:
+        _set_prepared(prepared)
         for job in jobs:
             store(_run_trial(job))
     else:
         import multiprocessing as mp
 
-        with mp.get_context("spawn").Pool(workers) as pool:
+        with mp.get_context("spawn").Pool(
+            workers, initializer=_set_prepared, initargs=(prepared,)
+        ) as pool:
             for row in pool.imap_unordered(_run_trial, jobs):
                 store(row)
     if bar is not None:
@@ -226,6 +273,13 @@ def Evaluate(
         "protocol": "transformation: object moved <= 10 cm, turned <= 45 deg",
         "trials_per_cell": trials,
         "seed": seed,
+        "poses": {
+            name: TrialPoses(
+                name, trials=trials, seed=seed, scenario_text=scenario_text
+            )
+            for name in scenario_names
+        },
+        "prepare_seconds": prepare_seconds,
         "results": table,
         "failures": [
             {

@@ -1,12 +1,24 @@
-"""The imitation diagram and `fabric-imitate imitate`, the main job.
+"""The imitation diagram and `fabric-imitate imitate`, the main job, in stages:
+
+    PrepareImitation (learn from the demo once: f_R on its frames, train f_A)
+      -> MakeImitationDiagram (station + perception + reward + MPC + loggers)
+      -> RunEpisode (simulate; returns the loggers' records)
+      -> ScoreEpisode (success, IoU, Chamfer, rule breaks, latencies)
 
 station -> fabric mask, depth -> KeypointEstimator -> (DemoReward, MpcController)
 MpcController -> GripperTargetIntegrator -> station; MpcController.release ->
 station.release. Events within a control step are staggered (estimator at
 offset 0, controller at +1 ms, target integrator at +2 ms) so each uses the
 fresh result of the one before.
+
+Episode records come from Drake's `VectorLogSink`s publishing once per control
+period at k * dt. A publish at time t sees the state before the discrete
+updates due at t, so record k holds the true cloth at k * dt (what the
+estimator sees at that step) and the estimator's and the controller's results
+of step k - 1. `EpisodeTransitions` pairs them up.
 """
 
+import dataclasses as dc
 import sys
 import time
 from pathlib import Path
@@ -14,12 +26,11 @@ from pathlib import Path
 import numpy as np
 import torch
 from fabric_imitation.diagrams.recording import MakeRecordingMeshcat, SaveRecording
-from fabric_imitation.diagrams.simulation import CaptureFrame
+from fabric_imitation.diagrams.simulation import CaptureFrame, Frame
 from fabric_imitation.diagrams.station import (
     SIDES,
-    AddReleaseMonitor,
+    AdvanceStationTo,
     CameraModelFromConfig,
-    GraspCorners,
     InitializeStation,
     MakeClothStation,
     StationPorts,
@@ -32,46 +43,56 @@ from fabric_imitation.learning.metrics import chamfer_distance, cloud_from_depth
 from fabric_imitation.learning.mpc import Mpc, MpcConfig
 from fabric_imitation.learning.polygon import iou
 from fabric_imitation.learning.priors import Priors, load_priors
-from fabric_imitation.learning.safety import SafetyContext, valid_actions
-from fabric_imitation.learning.state import world_to_object
-from fabric_imitation.scenarios.schema import Scenario, yaw_rad
+from fabric_imitation.learning.safety import RULES, SafetyContext, rule_violations
+from fabric_imitation.learning.state import (
+    PlanarPose,
+    world_to_object,
+)
+from fabric_imitation.scenarios.schema import Scenario
 from fabric_imitation.systems.imitation import (
     RUNNING,
     TERMINATION_NAMES,
     DemoReward,
     KeypointEstimator,
     MpcController,
-    SuccessMonitor,
+    PlanarPoseVector,
 )
 from fabric_imitation.systems.targets import GripperTargetIntegrator
 from fabric_imitation.systems.visualization import ClothFrameRecorder
 from pydrake.systems.analysis import Simulator
 from pydrake.systems.framework import Diagram, DiagramBuilder
-from pydrake.systems.primitives import Multiplexer
+from pydrake.systems.primitives import LogVectorOutput, Multiplexer, VectorLogSink
 
 PACKAGE_ROOT = Path(__file__).resolve().parent.parent
 DEFAULT_PRIORS = PACKAGE_ROOT / "learning" / "priors" / "default"
 DEFAULT_DEMOS = PACKAGE_ROOT / "scenarios" / "demos"
 EVENT_STAGGER = 1e-3  # [s]
+NUM_KEYPOINTS = 8
 
 
-def ObjectPose(scenario: Scenario) -> np.ndarray:
-    p = scenario.object.pose
-    return np.array([p[0], p[1], yaw_rad(p)])
-
-
-def ObjectSafetyContext(scenario: Scenario) -> SafetyContext:
-    """Safety rules for states in the object frame of `scenario`."""
+def ObjectSafetyContext(
+    scenario: Scenario, *, estimated: bool = False
+) -> SafetyContext:
+    """Safety rules for states in the object frame of `scenario`; `estimated`:
+    the states are the camera's estimates (the controller's view), so rule 2
+    allows for far corners hidden under a hanging side (SafetyContext)."""
     lower = np.array(scenario.workspace.lower, float)
     lower[2] = max(lower[2], -scenario.cloth.thickness)
     return SafetyContext(
         edge_length=scenario.cloth.size[0],
         workspace_lower=lower,
         workspace_upper=np.array(scenario.workspace.upper, float),
-        object_size=np.array(scenario.object.size, float)
+        object_size=_object_size(scenario),
+        frame_pose=np.array(PlanarPose.FromDegrees(scenario.object.pose)),
+        far_corners_may_hang=estimated,
+    )
+
+
+def _object_size(scenario: Scenario) -> np.ndarray | None:
+    return (
+        np.array(scenario.object.size, float)
         if scenario.object.kind != "none"
-        else None,
-        frame_pose=ObjectPose(scenario),
+        else None
     )
 
 
@@ -81,17 +102,99 @@ def DemoStates(priors: Priors, demo: Demo) -> np.ndarray:
     return world_to_object(p_W, demo.object_pose)
 
 
-def MakeImitationDiagram(
+def DefaultDemoDir(scenario_name: str, scenario: Scenario) -> Path:
+    """The shipped demo for `scenario_name`, else the one of its task (the
+    box demo serves box_panda)."""
+    own = DEFAULT_DEMOS / scenario_name
+    return own if own.exists() else DEFAULT_DEMOS / scenario.task
+
+
+@dc.dataclass
+class PreparedImitation:
+    """What is learned from one demo, once, and shared by every episode that
+    imitates it (any object pose, any MPC variant)."""
+
+    demo: Demo
+    priors: Priors
+    demo_states: np.ndarray  # (T, M, 3), demo object frame
+    model: DemoModel  # demo states + f_A + termination classifier
+    registration: dict  # f_A training summary
+    seconds: float  # wall time of the preparation
+
+
+def PrepareImitation(
     scenario: Scenario,
     *,
-    priors: Priors,
-    demo: DemoModel,
+    demo_dir: Path,
+    priors_dir: Path | None = None,
+) -> PreparedImitation:
+    """Loads the priors and the demo, checks they fit `scenario` (task,
+    camera), runs f_R on the demo's frames and trains f_A."""
+    if scenario.task == "prior":
+        raise InputError("the prior scene has no task to imitate; use box, hang, ...")
+    t0 = time.perf_counter()
+    demo_dir = Path(demo_dir)
+    priors_dir = Path(priors_dir) if priors_dir else DEFAULT_PRIORS
+    camera = CameraModelFromConfig(scenario.camera)
+    priors = load_priors(
+        priors_dir,
+        num_keypoints=NUM_KEYPOINTS,
+        image_size=(scenario.camera.height, scenario.camera.width),
+        camera=camera,
+    )
+    demo = LoadDemo(demo_dir)
+    if demo.task != scenario.task:
+        raise InputError(
+            f"demo {demo_dir} shows the {demo.task!r} task, the scenario "
+            f"is {scenario.task!r}"
+        )
+    if not demo.camera.same_as(camera):
+        raise InputError(
+            f"demo {demo_dir} was recorded with another camera "
+            "(intrinsics or pose differ from the scenario's)"
+        )
+    if priors.prior_states is None:
+        raise InputError(f"priors {priors_dir} carry no prior states for f_A")
+    states = DemoStates(priors, demo)
+    model, info = learn_from_demo(states, priors.prior_states, scenario.reward)
+    return PreparedImitation(
+        demo=demo,
+        priors=priors,
+        demo_states=states,
+        model=model,
+        registration=info,
+        seconds=time.perf_counter() - t0,
+    )
+
+
+@dc.dataclass
+class ImitationDiagram:
+    """The built imitation diagram and the systems runners use."""
+
+    diagram: Diagram
+    station: Diagram
+    estimator: KeypointEstimator
+    reward: DemoReward
+    controller: MpcController
+    targets: GripperTargetIntegrator
+    mpc: Mpc
+    loggers: dict[str, VectorLogSink]
+    step_seconds: float
+    meshcat: object | None = None
+
+
+def MakeImitationDiagram(
+    scenario: Scenario,
+    prepared: PreparedImitation,
+    *,
     mpc_config: MpcConfig | None = None,
     meshcat=None,
     seed: int | None = None,
-) -> Diagram:
-    """Station + perception + demo reward + MPC + target integration."""
+) -> ImitationDiagram:
+    """Station + perception + demo reward + MPC + target integration, with a
+    logger per signal an episode is scored on (period: the control step)."""
     cfg = mpc_config or scenario.mpc
+    priors, demo = prepared.priors, prepared.model
     dt = scenario.motion.step_seconds
     m = priors.num_keypoints
     builder = DiagramBuilder()
@@ -117,7 +220,7 @@ def MakeImitationDiagram(
         dynamics=priors,
         demo=demo,
         safety=scenario.safety,
-        safety_ctx=ObjectSafetyContext(scenario),
+        safety_ctx=ObjectSafetyContext(scenario, estimated=True),
         config=cfg,
     )
     controller = builder.AddNamedSystem(
@@ -134,13 +237,9 @@ def MakeImitationDiagram(
     targets = builder.AddNamedSystem(
         "targets", GripperTargetIntegrator(step_seconds=dt, offset=2 * EVENT_STAGGER)
     )
-    handles = station.handles
-    monitor = builder.AddNamedSystem(
-        "success_monitor",
-        SuccessMonitor(
-            judge=lambda p: TaskSuccess(scenario, p, handles.mesh.top_layer).success,
-            num_vertices=len(handles.mesh.vertices),
-        ),
+    pose = builder.AddNamedSystem("object_pose", PlanarPoseVector())
+    builder.Connect(
+        station.GetOutputPort(StationPorts.OBJECT_POSE), pose.GetInputPort("pose")
     )
     builder.Connect(
         station.GetOutputPort(StationPorts.MASK), estimator.GetInputPort("mask")
@@ -160,6 +259,7 @@ def MakeImitationDiagram(
             grippers.get_input_port(k),
         )
     builder.Connect(grippers.get_output_port(), estimator.GetInputPort("grippers"))
+    builder.Connect(grippers.get_output_port(), targets.GetInputPort("measured"))
     for system in (reward, controller):
         builder.Connect(
             estimator.GetOutputPort("keypoints"), system.GetInputPort("keypoints")
@@ -173,19 +273,39 @@ def MakeImitationDiagram(
             targets.GetOutputPort(f"{side}.ee_target"),
             station.GetInputPort(StationPorts.ee_target(side)),
         )
-    builder.Connect(
-        station.GetOutputPort(StationPorts.CLOTH_POSITIONS),
-        monitor.GetInputPort("positions"),
-    )
-    if meshcat is not None:
+    logged = {
+        "estimated_keypoints": estimator.GetOutputPort("keypoints"),
+        "object_pose": pose.GetOutputPort("vector"),
+        "grippers": grippers.get_output_port(),
+        "reward": reward.GetOutputPort("reward"),
+        **{
+            name: controller.GetOutputPort(name)
+            for name in (
+                "action",
+                "termination",
+                "steps",
+                "progress",
+                "solve_ms",
+                "iterations",
+            )
+        },
+    }
+    if station.HasOutputPort(StationPorts.CLOTH_KEYPOINTS):
+        logged["true_keypoints"] = station.GetOutputPort(StationPorts.CLOTH_KEYPOINTS)
+    loggers = {}
+    for name, port in logged.items():
+        loggers[name] = LogVectorOutput(port, builder, publish_period=dt)
+        loggers[name].set_name(f"log.{name}")
+    if meshcat is not None and station.HasOutputPort(StationPorts.CLOTH_POSITIONS):
         from fabric_imitation.diagrams.cloth_mesh import TopTriangles
 
+        mesh = station.handles.mesh
         recorder = builder.AddNamedSystem(
             "cloth_recorder",
             ClothFrameRecorder(
                 meshcat=meshcat,
-                num_vertices=len(handles.mesh.vertices),
-                triangles=TopTriangles(handles.mesh.top_layer),
+                num_vertices=len(mesh.vertices),
+                triangles=TopTriangles(mesh.top_layer),
                 period=1 / 16,
             ),
         )
@@ -198,25 +318,268 @@ def MakeImitationDiagram(
         (reward, "progress"),
         (reward, "reward"),
         (reward, "done"),
-        (controller, "status"),
         (controller, "action"),
-        (monitor, "success"),
+        (controller, "termination"),
     ):
         builder.ExportOutput(system.GetOutputPort(port), port)
     diagram = builder.Build()
     diagram.set_name("imitation")
-    diagram.station = station
-    diagram.targets = targets
-    diagram.mpc = mpc
-    return diagram
+    return ImitationDiagram(
+        diagram=diagram,
+        station=station,
+        estimator=estimator,
+        reward=reward,
+        controller=controller,
+        targets=targets,
+        mpc=mpc,
+        loggers=loggers,
+        step_seconds=dt,
+        meshcat=meshcat,
+    )
 
 
-def _chamfer(camera, frame_depth, frame_mask, demo: Demo, pose_now, rng) -> float:
-    a = cloud_from_depth(camera, frame_depth, frame_mask, rng)
+@dc.dataclass
+class EpisodeRun:
+    """What `RunEpisode` returns: the loggers' records, one row per control
+    period (row k at time k * dt), and what the camera saw."""
+
+    times: np.ndarray  # (K,)
+    logs: dict[str, np.ndarray]  # name -> (K, size)
+    final: Frame | None  # after the settle (simulation only)
+    frames: list[np.ndarray]  # RGB after each control step (when asked)
+    first_action_s: float  # wall time from the start of the run to action 0
+    wall_seconds: float
+    error: str | None = None
+    top_layer: np.ndarray | None = None  # the cloth's top-surface vertices
+
+
+def RunEpisode(
+    imitation: ImitationDiagram,
+    *,
+    settle_seconds: float,
+    video: bool = False,
+    progress: str | None = None,
+) -> EpisodeRun:
+    """Simulates until the controller ends the episode, then `settle_seconds`
+    more (the released cloth settles). A diverging simulation ends the run
+    with `error` set; the records up to there are kept."""
+    t0 = time.perf_counter()
+    station = imitation.station
+    simulator = Simulator(imitation.diagram)
+    context = simulator.get_mutable_context()
+    InitializeStation(station, station.GetMyMutableContextFromRoot(context))
+    simulator.Initialize()
+    station_context = station.GetMyContextFromRoot(context)
+    controller_context = imitation.controller.GetMyContextFromRoot(context)
+    termination = imitation.controller.GetOutputPort("termination")
+    dt = imitation.step_seconds
+    frames, first_action_s, error, bar = [], None, None, None
+    if progress:
+        from tqdm import tqdm
+
+        bar = tqdm(desc=progress, unit="step", file=sys.stderr, leave=False)
+    try:
+        k = 0
+        while True:
+            AdvanceStationTo(simulator, station, k * dt + 3 * EVENT_STAGGER)
+            if first_action_s is None:
+                first_action_s = time.perf_counter() - t0
+            if termination.Eval(controller_context)[0] != RUNNING:
+                break
+            if video and k > 0:
+                frames.append(CaptureFrame(station, station_context).rgb)
+            if bar is not None:
+                bar.update()
+            k += 1
+        AdvanceStationTo(simulator, station, context.get_time() + settle_seconds)
+    except RuntimeError as e:
+        error = " ".join(str(e).split())[:300]
+    finally:
+        if bar is not None:
+            bar.close()
+    final = (
+        CaptureFrame(station, station_context)
+        if station.HasOutputPort(StationPorts.CLOTH_POSITIONS)
+        else None
+    )
+    logs, times = {}, None
+    for name, logger in imitation.loggers.items():
+        log = logger.FindLog(context)
+        logs[name] = np.array(log.data()).T
+        times = np.array(log.sample_times())
+    return EpisodeRun(
+        times=times,
+        logs=logs,
+        final=final,
+        frames=frames,
+        first_action_s=first_action_s or float("nan"),
+        wall_seconds=time.perf_counter() - t0,
+        error=error,
+        top_layer=station.handles.mesh.top_layer if final is not None else None,
+    )
+
+
+@dc.dataclass
+class Transitions:
+    """The executed actions of an episode with the states around them, all in
+    the object frame (rows: one per executed action)."""
+
+    action: np.ndarray  # (n, 6)
+    estimated_before: np.ndarray  # (n, M, 3)
+    estimated_after: np.ndarray  # (n, M, 3)
+    true_before: np.ndarray | None  # (n, M, 3), simulation only
+    true_after: np.ndarray | None
+
+
+def EpisodeTransitions(times: np.ndarray, logs: dict[str, np.ndarray]) -> Transitions:
+    """Pairs every executed action with the states before and after it.
+
+    Row k of the records (time k * dt) holds the true keypoints at k * dt and
+    the estimate, action and step count computed in step k - 1. The action of
+    step k - 1 was executed when the step count grew from row k - 1 to row k;
+    its states are: estimated before = row k's estimate, after = row k + 1's;
+    true before = row k - 1's true keypoints, after = row k's. Actions whose
+    after-state was not recorded (a run cut short) are left out.
+    """
+    steps = logs["steps"][:, 0]
+    rows = [
+        k
+        for k in range(1, len(times) - 1)
+        if steps[k] > steps[k - 1]  # the action logged in row k was executed
+    ]
+    m = logs["estimated_keypoints"].shape[1] // 3
+    pose = logs["object_pose"]
+
+    def stack(values):
+        return (
+            np.array(values).reshape(len(rows), -1, 3) if rows else np.zeros((0, m, 3))
+        )
+
+    def est(k):
+        return logs["estimated_keypoints"][k].reshape(m, 3)
+
+    def true(k):
+        return world_to_object(logs["true_keypoints"][k].reshape(m, 3), pose[k])
+
+    has_true = "true_keypoints" in logs
+    return Transitions(
+        action=np.array(
+            [
+                PlanarPose(*pose[k]).vector_to_object(logs["action"][k].reshape(2, 3))
+                for k in rows
+            ]
+        ).reshape(len(rows), 6),
+        estimated_before=stack([est(k) for k in rows]),
+        estimated_after=stack([est(k + 1) for k in rows]),
+        true_before=stack([true(k - 1) for k in rows]) if has_true else None,
+        true_after=stack([true(k) for k in rows]) if has_true else None,
+    )
+
+
+def CountRuleBreaks(
+    before: np.ndarray,
+    action: np.ndarray,
+    after: np.ndarray,
+    scenario: Scenario,
+    safety_ctx: SafetyContext,
+) -> dict:
+    """How many transitions break any safety rule (judged on the state before
+    and after each action), and how many break each rule."""
+    if len(action) == 0:
+        return {"any": 0, **{rule: 0 for rule in RULES}}
+    t = torch.as_tensor
+    bad = rule_violations(
+        t(before, dtype=torch.float64),
+        t(action, dtype=torch.float64),
+        scenario.safety,
+        safety_ctx,
+        S_next=t(after, dtype=torch.float64),
+    )
+    any_bad = torch.zeros(len(action), dtype=torch.bool)
+    for v in bad.values():
+        any_bad |= v
+    return {"any": int(any_bad.sum()), **{r: int(bad[r].sum()) for r in RULES}}
+
+
+def _chamfer(camera, frame: Frame, demo: Demo, pose_now, rng) -> float:
+    a = cloud_from_depth(camera, frame.depth, frame.mask, rng)
     b = cloud_from_depth(camera, demo.final_depth, demo.final_mask, rng)
     return chamfer_distance(
         world_to_object(a, pose_now), world_to_object(b, demo.object_pose)
     )
+
+
+def ScoreEpisode(
+    scenario: Scenario, prepared: PreparedImitation, run: EpisodeRun
+) -> dict:
+    """Success, final IoU and Chamfer distance against the demo's end state
+    (simulation ground truth), rule breaks of the executed actions on the
+    estimated and on the true keypoints, and control-step latencies."""
+    logs = run.logs
+    steps = logs["steps"][:, 0]
+    termination = int(logs["termination"][-1, 0])
+    solved = np.flatnonzero(np.diff(steps, prepend=0) > 0)
+    solve_ms = logs["solve_ms"][solved, 0]
+
+    def percentile(q):
+        return round(float(np.percentile(solve_ms, q)), 1) if len(solve_ms) else None
+
+    pose = PlanarPose(*logs["object_pose"][-1])
+    safety_ctx = dc.replace(ObjectSafetyContext(scenario), frame_pose=np.array(pose))
+    tr = EpisodeTransitions(run.times, logs)
+    estimated = CountRuleBreaks(
+        tr.estimated_before, tr.action, tr.estimated_after, scenario, safety_ctx
+    )
+    summary = {
+        "steps": int(steps[-1]),
+        "termination": "diverged" if run.error else TERMINATION_NAMES[termination],
+        "rule_breaks_estimated": estimated,
+        "executed_violations": estimated["any"],
+        "mpc_step_ms": {
+            "p50": round(float(np.percentile(solve_ms, 50)), 1)
+            if len(solve_ms)
+            else None,
+            "p95": round(float(np.percentile(solve_ms, 95)), 1)
+            if len(solve_ms)
+            else None,
+        },
+        "error": run.error,
+    }
+    if tr.true_before is not None:
+        true = CountRuleBreaks(
+            tr.true_before, tr.action, tr.true_after, scenario, safety_ctx
+        )
+        summary["rule_breaks_true"] = true
+        summary["executed_violations_ground_truth"] = true["any"]
+    if run.final is not None:
+        final = run.final
+        report = TaskSuccess(scenario, final.positions_W, run.top_layer)
+        demo = prepared.demo
+        gt = np.load(demo.path / "ground_truth.npz")
+        demo_final = world_to_object(gt["final_keypoints_W"], demo.object_pose)
+        final_O = world_to_object(final.keypoints_W, pose)
+        final_iou = float(
+            iou(
+                torch.as_tensor(final_O[:, :2]),
+                torch.as_tensor(demo_final[:, :2], dtype=torch.float64),
+            )
+        )
+        from fabric_imitation.learning.geometry import PinholeCamera
+
+        chamfer = _chamfer(
+            PinholeCamera.from_model(CameraModelFromConfig(scenario.camera)),
+            final,
+            demo,
+            pose,
+            np.random.default_rng(0),
+        )
+        summary.update(
+            success=bool(report.success) and run.error is None,
+            success_details=report.details,
+            final_iou=round(final_iou, 3),
+            final_chamfer=round(chamfer, 6),
+        )
+    return summary
 
 
 def Imitate(
@@ -225,196 +588,58 @@ def Imitate(
     scenario_name: str,
     demo_dir: Path | None = None,
     priors_dir: Path | None = None,
+    prepared: PreparedImitation | None = None,
     mpc_config: MpcConfig | None = None,
     record: Path | None = None,
     video: Path | None = None,
     progress: bool = True,
     seed: int | None = None,
 ) -> dict:
-    """Runs one imitation episode; returns the JSON summary."""
-    if scenario.task == "prior":
-        raise InputError("the prior scene has no task to imitate; use box, hang, ...")
+    """Runs one imitation episode; returns the JSON summary. `prepared` (from
+    `PrepareImitation`) skips learning from the demo again."""
     wall0 = time.perf_counter()
     torch.set_num_threads(min(2, torch.get_num_threads()))
-    demo_dir = Path(demo_dir) if demo_dir else DEFAULT_DEMOS / scenario_name
-    priors_dir = Path(priors_dir) if priors_dir else DEFAULT_PRIORS
-    camera = CameraModelFromConfig(scenario.camera)
-    priors = load_priors(
-        priors_dir,
-        num_keypoints=8,
-        image_size=(scenario.camera.height, scenario.camera.width),
-        camera=camera,
-    )
-    t_demo = time.perf_counter()
-    demo = LoadDemo(demo_dir)
-    if demo.task != scenario.task:
-        raise InputError(
-            f"demo {demo_dir} shows the {demo.task!r} task, the scenario "
-            f"is {scenario.task!r}"
+    if prepared is None:
+        prepared = PrepareImitation(
+            scenario,
+            demo_dir=Path(demo_dir)
+            if demo_dir
+            else DefaultDemoDir(scenario_name, scenario),
+            priors_dir=priors_dir,
         )
-    if not demo.camera.same_as(camera):
-        raise InputError(
-            f"demo {demo_dir} was recorded with another camera "
-            "(intrinsics or pose differ from the scenario's)"
-        )
-    states = DemoStates(priors, demo)
-    if priors.prior_states is None:
-        raise InputError(f"priors {priors_dir} carry no prior states for f_A")
-    model, demo_info = learn_from_demo(states, priors.prior_states, scenario.reward)
+    t_build = time.perf_counter()
     meshcat = MakeRecordingMeshcat() if record else None
-    diagram = MakeImitationDiagram(
-        scenario,
-        priors=priors,
-        demo=model,
-        mpc_config=mpc_config,
-        meshcat=meshcat,
-        seed=seed,
+    imitation = MakeImitationDiagram(
+        scenario, prepared, mpc_config=mpc_config, meshcat=meshcat, seed=seed
     )
-    diagram.mpc.WarmUp(states[0])
-    station = diagram.station
-    simulator = Simulator(diagram)
-    AddReleaseMonitor(simulator, station)
-    context = simulator.get_mutable_context()
-    corners = GraspCorners(scenario)
-    diagram.targets.SetInitialPositions(
-        diagram.targets.GetMyMutableContextFromRoot(context),
-        corners["left"],
-        corners["right"],
+    imitation.mpc.WarmUp(prepared.demo_states[0])
+    build_s = time.perf_counter() - t_build
+    run = RunEpisode(
+        imitation,
+        settle_seconds=scenario.motion.settle_seconds,
+        video=video is not None,
+        progress=f"imitate {scenario_name}" if progress else None,
     )
-    InitializeStation(station, station.GetMyMutableContextFromRoot(context))
-    simulator.Initialize()
-    dt = scenario.motion.step_seconds
-    station_context = station.GetMyContextFromRoot(context)
-    safety_ctx = ObjectSafetyContext(scenario)
-    pose = ObjectPose(scenario)
-    m = priors.num_keypoints
-
-    def out(name):
-        return np.array(diagram.GetOutputPort(name).Eval(context))
-
-    solve_ms, violations, violations_gt, frames = [], 0, 0, []
-    first_action_s = None
-    error = None
-    bar = None
-    if progress:
-        from tqdm import tqdm
-
-        bar = tqdm(
-            desc=f"imitate {scenario_name}", unit="step", file=sys.stderr, leave=False
-        )
-    k = 0
-    try:
-        while True:
-            gt_before = world_to_object(
-                np.array(
-                    station.GetOutputPort(StationPorts.CLOTH_KEYPOINTS).Eval(
-                        station_context
-                    )
-                ).reshape(m, 3),
-                pose,
-            )
-            simulator.AdvanceTo(k * dt + 3 * EVENT_STAGGER)
-            status = out("status")
-            if first_action_s is None:
-                first_action_s = time.perf_counter() - t_demo
-            if status[1] != RUNNING:
-                break
-            solve_ms.append(float(status[3]))
-            S = out("keypoints").reshape(m, 3)
-            yaw = pose[2]
-            R = np.array(
-                [
-                    [np.cos(yaw), np.sin(yaw), 0],
-                    [-np.sin(yaw), np.cos(yaw), 0],
-                    [0, 0, 1],
-                ]
-            )
-            A_O = (out("action").reshape(2, 3) @ R.T).ravel()
-            simulator.AdvanceTo((k + 1) * dt)
-            k += 1
-            S_next = out("keypoints").reshape(m, 3)
-            gt_after = world_to_object(
-                np.array(
-                    station.GetOutputPort(StationPorts.CLOTH_KEYPOINTS).Eval(
-                        station_context
-                    )
-                ).reshape(m, 3),
-                pose,
-            )
-            t = torch.as_tensor
-            violations += int(
-                not valid_actions(
-                    t(S, dtype=torch.float64),
-                    t(A_O),
-                    scenario.safety,
-                    safety_ctx,
-                    S_next=t(S_next, dtype=torch.float64),
-                )
-            )
-            violations_gt += int(
-                not valid_actions(
-                    t(gt_before, dtype=torch.float64),
-                    t(A_O),
-                    scenario.safety,
-                    safety_ctx,
-                    S_next=t(gt_after, dtype=torch.float64),
-                )
-            )
-            if video is not None:
-                frames.append(CaptureFrame(station, station_context).rgb)
-            if bar is not None:
-                bar.update()
-        simulator.AdvanceTo(context.get_time() + scenario.motion.settle_seconds)
-    except RuntimeError as e:
-        error = " ".join(str(e).split())[:300]
-    finally:
-        if bar is not None:
-            bar.close()
-    status = out("status")
-    final = CaptureFrame(station, station_context)
-    report = TaskSuccess(scenario, final.positions_W, station.handles.mesh.top_layer)
-    gt = np.load(demo.path / "ground_truth.npz")
-    demo_final = world_to_object(gt["final_keypoints_W"], demo.object_pose)
-    final_O = world_to_object(final.keypoints_W, pose)
-    final_iou = float(
-        iou(
-            torch.as_tensor(final_O[:, :2]),
-            torch.as_tensor(demo_final[:, :2], dtype=torch.float64),
-        )
-    )
-    from fabric_imitation.learning.geometry import PinholeCamera
-
-    chamfer = _chamfer(
-        PinholeCamera.from_model(camera),
-        final.depth,
-        final.mask,
-        demo,
-        pose,
-        np.random.default_rng(0),
-    )
-    if video is not None:
-        WriteVideo(video, frames + [final.rgb], 1.0 / dt)
-    if record is not None:
-        SaveRecording(meshcat, record)
     summary = {
         "scenario": scenario_name,
         "object_pose": list(scenario.object.pose),
-        "success": bool(report.success) and error is None,
-        "success_details": report.details,
-        "steps": int(status[2]),
-        "termination": "diverged" if error else TERMINATION_NAMES[int(status[1])],
-        "executed_violations": violations,
-        "executed_violations_ground_truth": violations_gt,
-        "mpc_step_ms": {
-            "p50": round(float(np.percentile(solve_ms, 50)), 1) if solve_ms else None,
-            "p95": round(float(np.percentile(solve_ms, 95)), 1) if solve_ms else None,
-        },
-        "final_iou": round(final_iou, 3),
-        "final_chamfer": round(chamfer, 6),
-        "demo_frames": demo.num_frames,
-        "demo_to_first_action_s": round(first_action_s or float("nan"), 2),
-        "registration": demo_info,
-        "wall_seconds": round(time.perf_counter() - wall0, 2),
-        "error": error,
+        **ScoreEpisode(scenario, prepared, run),
     }
+    if video is not None and run.final is not None:
+        WriteVideo(
+            video, run.frames + [run.final.rgb], 1.0 / scenario.motion.step_seconds
+        )
+    if record is not None:
+        SaveRecording(meshcat, record)
+    summary.update(
+        {
+            "demo_frames": prepared.demo.num_frames,
+            "prepare_seconds": round(prepared.seconds, 2),
+            "demo_to_first_action_s": round(
+                prepared.seconds + build_s + run.first_action_s, 2
+            ),
+            "registration": prepared.registration,
+            "wall_seconds": round(time.perf_counter() - wall0, 2),
+        }
+    )
     return summary

@@ -11,7 +11,7 @@ import numpy as np
 from fabric_imitation.diagrams.cloth_mesh import TopTriangles
 from fabric_imitation.diagrams.station import (
     SIDES,
-    AddReleaseMonitor,
+    AdvanceStationTo,
     GraspCorners,
     InitializeStation,
     MakeClothStation,
@@ -133,7 +133,6 @@ class OpenLoopRun:
         self.station = station
         self.integrator = integrator
         self.simulator = Simulator(self.diagram)
-        AddReleaseMonitor(self.simulator, station)
         self.context = self.simulator.get_mutable_context()
         corners = GraspCorners(scenario)
         integrator.SetInitialPositions(
@@ -216,7 +215,7 @@ class OpenLoopRun:
 
     def advance_to(self, t: float) -> None:
         try:
-            self.simulator.AdvanceTo(t)
+            AdvanceStationTo(self.simulator, self.station, t)
         except RuntimeError as e:
             raise SimulationDivergedError(" ".join(str(e).split())[:300]) from None
         positions = self.station.GetOutputPort(StationPorts.CLOTH_POSITIONS).Eval(
@@ -264,11 +263,11 @@ class OpenLoopRun:
                 if bar is not None:
                     bar.update()
             if settle and self.release_step is not None:
-                t_release = self.release_step * self.step_seconds
-                self.advance_to(
-                    max(t_release, self.context.get_time())
-                    + self.scenario.motion.settle_seconds
+                t_release = max(
+                    self.release_step * self.step_seconds, self.context.get_time()
                 )
+                self.advance_to(t_release)
+                self.advance_to(t_release + self.scenario.motion.settle_seconds)
         except SimulationDivergedError as e:
             error = str(e)
         finally:

@@ -14,9 +14,10 @@ Exported ports (names in `StationPorts`):
              cloth.positions                    simulation only: 3N vertex positions
              cloth.keypoints                    simulation only: 3M ordered keypoints
 
-Opening the grasps changes plant parameters, which only a simulator monitor
-may do: call `AddReleaseMonitor(simulator, station)` on every Simulator that
-runs a station (the runners in this package do).
+Opening the FEM grasps changes plant parameters, which no event may do: run
+a station with `AdvanceStationTo(simulator, station, t)` instead of
+`simulator.AdvanceTo(t)` (the runners in this package do); it opens them
+between steps once `released` turns on.
 """
 
 import dataclasses as dc
@@ -64,7 +65,7 @@ from pydrake.multibody.tree import (
     SpatialInertia,
 )
 from pydrake.systems.analysis import Simulator
-from pydrake.systems.framework import Diagram, DiagramBuilder, EventStatus
+from pydrake.systems.framework import Diagram, DiagramBuilder
 from pydrake.systems.primitives import (
     ConstantValueSource,
     Demultiplexer,
@@ -645,25 +646,53 @@ def CameraModelFromConfig(config):
     )
 
 
-def AddReleaseMonitor(simulator: Simulator, station: Diagram) -> None:
-    """Opens the station's grasps (switches the clip welds off) once its
-    `released` output turns on. Chains any monitor already set."""
+def _welded(station: Diagram, root_context) -> bool:
+    handles = getattr(station, "handles", None)
+    if handles is None or not handles.weld_ids:
+        return False
+    plant_context = handles.plant.GetMyContextFromRoot(root_context)
+    return any(
+        handles.plant.GetConstraintActiveStatus(plant_context, weld)
+        for weld in handles.weld_ids
+    )
+
+
+def ApplyRelease(station: Diagram, root_context) -> bool:
+    """Opens the FEM clip welds once the station's `released` output is on;
+    returns whether the grasps are open. Changes plant parameters, so call it
+    only between `AdvanceTo` calls (`AdvanceStationTo` does)."""
     handles = station.handles
-    previous = simulator.get_monitor()
+    station_context = station.GetMyContextFromRoot(root_context)
+    if station.GetOutputPort(StationPorts.RELEASED).Eval(station_context)[0] <= 0.5:
+        return False
+    plant_context = handles.plant.GetMyMutableContextFromRoot(root_context)
+    for weld, clip in zip(handles.weld_ids, handles.clips, strict=True):
+        if handles.plant.GetConstraintActiveStatus(plant_context, weld):
+            handles.plant.SetConstraintActiveStatus(plant_context, weld, False)
+            clip.SetSpatialInertiaInBodyFrame(
+                plant_context,
+                SpatialInertia.SolidSphereWithMass(
+                    handles.scenario.grippers.clip_mass, CLIP_RADIUS
+                ),
+            )
+    return True
 
-    def monitor(root_context) -> EventStatus:
-        station_context = station.GetMyContextFromRoot(root_context)
-        if station.GetOutputPort(StationPorts.RELEASED).Eval(station_context)[0] > 0.5:
-            plant_context = handles.plant.GetMyMutableContextFromRoot(root_context)
-            for weld, clip in zip(handles.weld_ids, handles.clips, strict=True):
-                if handles.plant.GetConstraintActiveStatus(plant_context, weld):
-                    handles.plant.SetConstraintActiveStatus(plant_context, weld, False)
-                    clip.SetSpatialInertiaInBodyFrame(
-                        plant_context,
-                        SpatialInertia.SolidSphereWithMass(
-                            handles.scenario.grippers.clip_mass, CLIP_RADIUS
-                        ),
-                    )
-        return previous(root_context) if previous else EventStatus.Succeeded()
 
-    simulator.set_monitor(monitor)
+def AdvanceStationTo(simulator: Simulator, station: Diagram, t: float) -> None:
+    """`simulator.AdvanceTo(t)` for a diagram holding `station`.
+
+    While the FEM cloth's clip welds are on, it advances one plant step at a
+    time and opens them (`ApplyRelease`) right after the step in which the
+    station's `released` output turns on; otherwise (the vbd cloth, whose
+    release is a port, or welds already open) it is one `AdvanceTo`.
+    """
+    root = simulator.get_mutable_context()
+    if not _welded(station, root):
+        simulator.AdvanceTo(t)
+        return
+    h = station.handles.plant.time_step()
+    while root.get_time() < t - 1e-12:
+        simulator.AdvanceTo(min(t, root.get_time() + h))
+        if ApplyRelease(station, root):
+            simulator.AdvanceTo(t)
+            return

@@ -19,6 +19,7 @@ import dataclasses as dc
 import time
 from typing import Protocol
 
+import numpy as np
 import torch
 from fabric_imitation.learning.demo_learning import DemoModel
 from fabric_imitation.learning.safety import (
@@ -252,7 +253,13 @@ class Mpc:
 
     @torch.no_grad()
     def solve(
-        self, S, *, step: int = 0, seed: int = 0, previous_progress: int | None = None
+        self,
+        S,
+        *,
+        step: int = 0,
+        seed: int = 0,
+        previous_progress: int | None = None,
+        frame_pose=None,
     ) -> MpcResult:
         """One control step from state S (M, 3).
 
@@ -260,9 +267,15 @@ class Mpc:
         searched in [J - progress_lag, J + progress_lead] only: a top-down
         polygon cannot tell a lifted or lowered cloth from one at another
         height, and free jumps of J made the controller hunt back and forth.
+        `frame_pose` ([x, y, yaw]) is the object's pose now, where the
+        workspace rule's world box is checked (default: the one given at
+        construction).
         """
         cfg = self.config
         t0 = time.perf_counter()
+        if frame_pose is not None:
+            # The rules' world-frame parts (workspace box) follow the object.
+            self.ctx = dc.replace(self.ctx, frame_pose=np.asarray(frame_pose, float))
         S = torch.as_tensor(S, dtype=torch.float32)
         search = None
         if previous_progress is not None and cfg.progress_lead >= 0:

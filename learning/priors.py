@@ -7,6 +7,9 @@ or an object frame); f_D and f_I work in each state's canonical frame
 """
 
 import dataclasses as dc
+import hashlib
+import json
+import pickle
 from pathlib import Path
 
 import numpy as np
@@ -22,7 +25,12 @@ from fabric_imitation.learning.geometry import (
 from fabric_imitation.learning.models import KeypointNet, KeypointNetConfig, Mlp
 
 CHECKPOINT_FORMAT = "fabric-imitation-priors"
-CHECKPOINT_VERSION = 1
+CHECKPOINT_VERSION = 2
+# A checkpoint is a directory with two files: the description (format,
+# network config, camera, metrics and the tensors file's sha256) in JSON, and
+# the tensors alone in a torch file, loaded with `weights_only=True`, so a
+# checkpoint cannot carry code (a pickled object is refused, not run).
+CHECKPOINT_JSON = "priors.json"
 CHECKPOINT_FILE = "priors.pt"
 HEIGHT_SCALE = 4.0  # the height channel is metres * HEIGHT_SCALE
 
@@ -145,23 +153,51 @@ class Priors:
     # --- checkpoint --------------------------------------------------------
 
     def save(self, directory: Path, *, extra: dict) -> Path:
+        """Writes `directory`/priors.pt (tensors) and priors.json (the rest:
+        config, and `extra`'s JSON values; its tensors go to priors.pt).
+        Returns the JSON path. Both files appear whole or not at all."""
         directory = Path(directory)
         directory.mkdir(parents=True, exist_ok=True)
-        blob = {
+        tensors = {}
+        for name in ("f_R", "f_D", "f_I"):
+            for key, value in getattr(self, name).state_dict().items():
+                tensors[f"{name}.{key}"] = value.detach().cpu().contiguous()
+        for name, norm in self.norms.items():
+            tensors[f"norms.{name}.mean"] = norm.mean.detach().cpu().contiguous()
+            tensors[f"norms.{name}.std"] = norm.std.detach().cpu().contiguous()
+        metadata = {}
+        for key, value in extra.items():
+            if isinstance(value, torch.Tensor):
+                tensors[key] = value.detach().cpu().contiguous()
+            else:
+                metadata[key] = value
+        path = directory / CHECKPOINT_FILE
+        tmp = path.with_name(path.name + ".partial")
+        torch.save(tensors, tmp)
+        description = {
             "format": CHECKPOINT_FORMAT,
             "version": CHECKPOINT_VERSION,
             "config": self.config,
-            "f_R": self.f_R.state_dict(),
-            "f_D": self.f_D.state_dict(),
-            "f_I": self.f_I.state_dict(),
-            "norms": {k: v.state() for k, v in self.norms.items()},
-            **extra,
+            "norms": sorted(self.norms),
+            "metadata": metadata,
+            "tensors": {"file": CHECKPOINT_FILE, "sha256": _sha256(tmp)},
         }
-        path = directory / CHECKPOINT_FILE
-        tmp = path.with_name(path.name + ".partial")
-        torch.save(blob, tmp)
+        json_path = directory / CHECKPOINT_JSON
+        json_tmp = json_path.with_name(json_path.name + ".partial")
+        json_tmp.write_text(
+            json.dumps(description, indent=1, default=lambda o: o.item())
+        )
         tmp.replace(path)
-        return path
+        json_tmp.replace(json_path)
+        return json_path
+
+
+def _sha256(path: Path) -> str:
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        for chunk in iter(lambda: f.read(1 << 20), b""):
+            h.update(chunk)
+    return h.hexdigest()
 
 
 def _batch_images(x) -> torch.Tensor:
@@ -191,27 +227,99 @@ def load_priors(
     image_size: tuple[int, int] | None = None,
     camera=None,
 ) -> Priors:
-    """Loads priors from a checkpoint directory (or its priors.pt).
+    """Loads priors from a checkpoint directory (or a file in it).
 
     Args:
         num_keypoints, image_size, camera: when given, the checkpoint must
             match them (a CameraModel's intrinsics and pose).
 
     Raises:
-        InputError: missing or corrupt file, another format, a mismatch.
+        InputError: missing or corrupt file, another format or version, a
+            checksum mismatch, a tensors file that needs pickle, a mismatch.
     """
     path = Path(path)
-    file = path / CHECKPOINT_FILE if path.is_dir() else path
+    if not path.exists():
+        raise InputError(f"priors checkpoint not found: {path}")
+    directory = path if path.is_dir() else path.parent
+    file = directory / CHECKPOINT_JSON
     if not file.is_file():
+        if (directory / CHECKPOINT_FILE).is_file():
+            raise InputError(
+                f"priors {directory} have no {CHECKPOINT_JSON}: an old pickled "
+                "checkpoint, not loaded because unpickling can run code; "
+                "retrain with `fabric-imitate train`"
+            )
         raise InputError(f"priors checkpoint not found: {file}")
     try:
-        blob = torch.load(file, map_location="cpu", weights_only=False)
-    except Exception as e:  # noqa: BLE001 (any unpickling failure is a bad file)
+        description = json.loads(file.read_text())
+    except (json.JSONDecodeError, UnicodeDecodeError):
+        raise InputError(f"priors checkpoint {file} is corrupt (not JSON)") from None
+    if (
+        not isinstance(description, dict)
+        or description.get("format") != CHECKPOINT_FORMAT
+        or description.get("version") != CHECKPOINT_VERSION
+    ):
         raise InputError(
-            f"priors checkpoint {file} is corrupt: {' '.join(str(e).split())[:150]}"
+            f"{file} is not a {CHECKPOINT_FORMAT} checkpoint of version "
+            f"{CHECKPOINT_VERSION}"
+        )
+    manifest = directory / "manifest.json"
+    if manifest.is_file():  # shipped priors list their files' checksums
+        try:
+            listed = json.loads(manifest.read_text()).get("files", {})
+        except (json.JSONDecodeError, UnicodeDecodeError, AttributeError):
+            raise InputError(f"priors {manifest} is corrupt") from None
+        for name, digest in listed.items():
+            f = directory / name
+            if not f.is_file() or _sha256(f) != digest:
+                raise InputError(
+                    f"priors {f} is missing, truncated or changed (checksum "
+                    f"mismatch with {manifest.name})"
+                )
+    tensors_file = directory / description["tensors"]["file"]
+    if not tensors_file.is_file():
+        raise InputError(f"priors checkpoint {file}: {tensors_file.name} is missing")
+    if _sha256(tensors_file) != description["tensors"]["sha256"]:
+        raise InputError(
+            f"priors {tensors_file} is truncated or changed (checksum mismatch)"
+        )
+    try:
+        tensors = torch.load(tensors_file, map_location="cpu", weights_only=True)
+    except pickle.UnpicklingError as e:
+        raise InputError(
+            f"priors {tensors_file} hold more than tensors (refused: loading "
+            f"them would need pickle, which can run code): "
+            f"{' '.join(str(e).split())[:100]}"
         ) from None
-    if not isinstance(blob, dict) or blob.get("format") != CHECKPOINT_FORMAT:
-        raise InputError(f"{file} is not a {CHECKPOINT_FORMAT} checkpoint")
+    except Exception as e:  # noqa: BLE001 (any other failure is a bad file)
+        raise InputError(
+            f"priors checkpoint {tensors_file} is corrupt: "
+            f"{' '.join(str(e).split())[:150]}"
+        ) from None
+    if not isinstance(tensors, dict) or not all(
+        isinstance(v, torch.Tensor) for v in tensors.values()
+    ):
+        raise InputError(f"priors {tensors_file} is not a dictionary of tensors")
+    blob = {
+        "config": description["config"],
+        "norms": {
+            name: {
+                "mean": tensors.get(f"norms.{name}.mean"),
+                "std": tensors.get(f"norms.{name}.std"),
+            }
+            for name in description["norms"]
+        },
+        **{
+            net: {
+                k[len(net) + 1 :]: v
+                for k, v in tensors.items()
+                if k.startswith(net + ".")
+            }
+            for net in ("f_R", "f_D", "f_I")
+        },
+        **description["metadata"],
+        "prior_states": tensors.get("prior_states"),
+    }
     config = blob["config"]
     if num_keypoints is not None and int(config["num_keypoints"]) != num_keypoints:
         raise InputError(
@@ -231,6 +339,8 @@ def load_priors(
             f"priors {file} were trained with another camera "
             "(intrinsics or pose differ)"
         )
+    if any(v["mean"] is None or v["std"] is None for v in blob["norms"].values()):
+        raise InputError(f"priors {tensors_file} lack a normaliser's tensors")
     norms = {k: Normalizer(v["mean"], v["std"]) for k, v in blob["norms"].items()}
     priors = build_priors(config, PinholeCamera.from_model(stored), norms)
     try:

@@ -54,6 +54,12 @@ class SafetyContext:
     # Pose [x, y, yaw_rad] of the states' frame in world, where the workspace
     # box is defined (None: the states are in world).
     frame_pose: np.ndarray | None = None
+    # States are camera estimates, whose far corners s3, s4 may be hidden
+    # under a hanging side: f_R then puts them on the surface it sees, too
+    # high. Rule 2 is then also judged with each far corner dropped halfway
+    # and all the way to the surface below it (table or object top), so an
+    # action passes only if it passes wherever the corner may hang.
+    far_corners_may_hang: bool = False
 
 
 RULES = ("bounds", "distance", "direction", "workspace", "object")
@@ -91,6 +97,15 @@ def rule_violations(
         return (na > config.min_move) & (cos <= cos_max)
 
     out["direction"] = bad_direction(a_l, s1 - s3) | bad_direction(a_r, s2 - s4)
+    if ctx.far_corners_may_hang:
+        for fraction in (0.5, 1.0):
+            s3d = _dropped(s3, fraction, ctx)
+            s4d = _dropped(s4, fraction, ctx)
+            out["direction"] = (
+                out["direction"]
+                | bad_direction(a_l, s1 - s3d)
+                | bad_direction(a_r, s2 - s4d)
+            )
     lo = torch.as_tensor(ctx.workspace_lower, dtype=S.dtype)
     hi = torch.as_tensor(ctx.workspace_upper, dtype=S.dtype)
     grippers = torch.stack([s1n, s2n], -2)
@@ -131,6 +146,19 @@ def rule_violations(
     else:
         out["object"] = torch.zeros_like(out["bounds"])
     return out
+
+
+def _dropped(p: torch.Tensor, fraction: float, ctx: SafetyContext) -> torch.Tensor:
+    """Points p (..., 3) moved down by `fraction` of their height above the
+    surface under them: the object's top inside its footprint, else the
+    table (z = 0); frame: the object frame."""
+    floor = torch.zeros_like(p[..., 2])
+    if ctx.object_size is not None:
+        half = torch.as_tensor(ctx.object_size, dtype=p.dtype) / 2
+        over = (p[..., 0].abs() < half[0]) & (p[..., 1].abs() < half[1])
+        floor = torch.where(over, 2 * half[2], floor)
+    z = p[..., 2] - fraction * (p[..., 2] - floor).clamp_min(0.0)
+    return torch.cat([p[..., :2], z[..., None]], -1)
 
 
 def valid_actions(

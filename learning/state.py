@@ -13,6 +13,8 @@ evenly spaced points on each edge:
 so the grasped edge is indices 0..k, and the polygon closes back to index 0.
 """
 
+from typing import NamedTuple
+
 import numpy as np
 
 
@@ -58,6 +60,39 @@ def yaw_matrix(yaw: np.ndarray) -> np.ndarray:
         [np.stack([c, -s, z], -1), np.stack([s, c, z], -1), np.stack([z, z, o], -1)],
         -2,
     )
+
+
+class PlanarPose(NamedTuple):
+    """A pose on the table: position [m] and yaw about z [rad] (the object
+    frame O; z up, on the table top). The one type for `[x, y, yaw]`."""
+
+    x: float
+    y: float
+    yaw: float
+
+    @classmethod
+    def FromDegrees(cls, pose) -> "PlanarPose":
+        """From a scenario's `[x, y, yaw_deg]`."""
+        return cls(float(pose[0]), float(pose[1]), float(np.radians(pose[2])))
+
+    @classmethod
+    def FromRigidTransform(cls, X) -> "PlanarPose":
+        """From a pydrake RigidTransform (its yaw; roll and pitch ignored)."""
+        R = X.rotation().matrix()
+        p = X.translation()
+        return cls(float(p[0]), float(p[1]), float(np.arctan2(R[1, 0], R[0, 0])))
+
+    def rotation(self) -> np.ndarray:
+        """R_WO (3, 3)."""
+        return yaw_matrix(np.asarray(self.yaw))
+
+    def vector_to_world(self, v_O: np.ndarray) -> np.ndarray:
+        """Vectors (..., 3) from O to world (rotation only, e.g. moves)."""
+        return np.asarray(v_O) @ self.rotation().T
+
+    def vector_to_object(self, v_W: np.ndarray) -> np.ndarray:
+        """Vectors (..., 3) from world to O (rotation only)."""
+        return np.asarray(v_W) @ self.rotation()
 
 
 def world_to_object(p_W: np.ndarray, pose_O: np.ndarray) -> np.ndarray:

@@ -1,13 +1,18 @@
 """LeafSystems of the imitation diagram: keypoint estimator, demo reward, MPC
-controller, success monitor. Torch objects come in through the constructor
-(built elsewhere); per-run values live in the Context."""
+controller, and the object pose as a vector for loggers. Torch objects come
+in through the constructor (built elsewhere); per-run values live in the
+Context."""
 
 import logging
 import time
 
 import numpy as np
 import torch
-from fabric_imitation.learning.state import corner_indices, world_to_object
+from fabric_imitation.learning.state import (
+    PlanarPose,
+    corner_indices,
+    world_to_object,
+)
 from pydrake.common.value import AbstractValue
 from pydrake.math import RigidTransform
 from pydrake.systems.framework import BasicVector, EventStatus, LeafSystem
@@ -15,7 +20,7 @@ from pydrake.systems.sensors import ImageDepth32F, ImageGrey8U
 
 _LOG = logging.getLogger("fabric_imitation.mpc")
 
-# MpcController status codes (output "status"[1]).
+# MpcController termination codes (output "termination").
 RUNNING, TERMINATED_CLASSIFIER, TERMINATED_INFEASIBLE, TERMINATED_STEP_CAP = 0, 1, 2, 3
 TERMINATION_NAMES = {
     RUNNING: "running",
@@ -25,10 +30,25 @@ TERMINATION_NAMES = {
 }
 
 
-def _pose_vector(X_WO: RigidTransform) -> np.ndarray:
-    """[x, y, yaw] of an object pose on the table."""
-    R = X_WO.rotation().matrix()
-    return np.array([*X_WO.translation()[:2], np.arctan2(R[1, 0], R[0, 0])])
+class PlanarPoseVector(LeafSystem):
+    """The object pose as a vector [x, y, yaw] (for loggers and plots).
+
+    Input ports: ``pose`` (RigidTransform X_WO).
+    Output ports: ``vector`` (3).
+    """
+
+    def __init__(self):
+        super().__init__()
+        self._pose = self.DeclareAbstractInputPort(
+            "pose", AbstractValue.Make(RigidTransform())
+        )
+        self.DeclareVectorOutputPort(
+            "vector",
+            3,
+            lambda c, o: o.SetFromVector(
+                PlanarPose.FromRigidTransform(self._pose.Eval(c))
+            ),
+        )
 
 
 class KeypointEstimator(LeafSystem):
@@ -83,7 +103,9 @@ class KeypointEstimator(LeafSystem):
         p_W = np.array(self._priors.keypoints(mask, depth))
         if self._grippers.HasValue(context):
             p_W[self._corners] = self._grippers.Eval(context).reshape(2, 3)
-        p_O = world_to_object(p_W, _pose_vector(self._pose.Eval(context)))
+        p_O = world_to_object(
+            p_W, PlanarPose.FromRigidTransform(self._pose.Eval(context))
+        )
         discrete_state.get_mutable_vector(self._state).SetFromVector(p_O.ravel())
         return EventStatus.Succeeded()
 
@@ -126,13 +148,17 @@ class MpcController(LeafSystem):
     """Sampling MPC following the demo (learning/mpc.py), once per control step.
 
     Ends the episode (release, zero action) when the termination classifier
-    fires, when no feasible action exists, or at the step cap.
+    fires, when no feasible action exists, or at the step cap. The rules and
+    the action's frame use the object pose read from ``object_pose`` at each
+    step (on hardware it can come from a marker).
 
     Input ports: ``keypoints`` (3M, object frame), ``object_pose``
     (RigidTransform X_WO).
-    Output ports: ``action`` (6, world-frame relative moves [a_L, a_R]),
-    ``release`` (1), ``status`` (4: feasible, termination code, steps taken,
-    milliseconds of the last solve) -- all from state.
+    Output ports (all from state, i.e. the result of the last step):
+    ``action`` (6, world-frame relative moves [a_L, a_R]), ``release`` (1),
+    ``termination`` (1, one of TERMINATION_NAMES' codes), ``steps`` (1,
+    actions taken), ``progress`` (1, the demo step J the state matched),
+    ``solve_ms`` (1), ``iterations`` (1, sampling iterations of the solve).
     """
 
     def __init__(
@@ -154,24 +180,39 @@ class MpcController(LeafSystem):
         self._pose = self.DeclareAbstractInputPort(
             "object_pose", AbstractValue.Make(RigidTransform())
         )
-        self._action = self.DeclareDiscreteState(6)
-        self._release = self.DeclareDiscreteState(1)
-        self._status = self.DeclareDiscreteState(4)
-        self._progress = self.DeclareDiscreteState(1)  # J of the last step
+        self._state = {
+            name: self.DeclareDiscreteState(size)
+            for name, size in (
+                ("action", 6),
+                ("release", 1),
+                ("termination", 1),
+                ("steps", 1),
+                ("progress", 1),
+                ("solve_ms", 1),
+                ("iterations", 1),
+            )
+        }
         self.DeclarePeriodicDiscreteUpdateEvent(period, offset, self._update)
-        self.DeclareStateOutputPort("action", self._action)
-        self.DeclareStateOutputPort("release", self._release)
-        self.DeclareStateOutputPort("status", self._status)
+        for name, index in self._state.items():
+            self.DeclareStateOutputPort(name, index)
+
+    def _get(self, context, name: str) -> np.ndarray:
+        return context.get_discrete_state(self._state[name]).value()
 
     def _update(self, context, discrete_state) -> EventStatus:
-        status = context.get_discrete_state(self._status).value().copy()
-        if status[1] != RUNNING:
-            discrete_state.get_mutable_vector(self._action).SetZero()
+        def put(name, value):
+            discrete_state.get_mutable_vector(self._state[name]).SetFromVector(
+                np.atleast_1d(value)
+            )
+
+        if self._get(context, "termination")[0] != RUNNING:
+            put("action", np.zeros(6))
             return EventStatus.Succeeded()
         S = torch.as_tensor(
             self._kp.Eval(context).reshape(self._m, 3), dtype=torch.float32
         )
-        steps = int(status[2])
+        pose = PlanarPose.FromRigidTransform(self._pose.Eval(context))
+        steps = int(self._get(context, "steps")[0])
         t0 = time.perf_counter()
         code = RUNNING
         if bool(self._mpc.demo.done(S)):
@@ -179,23 +220,25 @@ class MpcController(LeafSystem):
         elif steps >= self._cap:
             code = TERMINATED_STEP_CAP
         action_W = np.zeros(6)
-        feasible = 1.0
+        iterations = 0
         if code == RUNNING:
-            previous = int(context.get_discrete_state(self._progress).value()[0])
+            previous = int(self._get(context, "progress")[0])
             result = self._mpc.solve(
-                S, step=steps, seed=self._seed, previous_progress=previous
+                S,
+                step=steps,
+                seed=self._seed,
+                previous_progress=previous,
+                frame_pose=pose,
             )
-            discrete_state.get_mutable_vector(self._progress).SetFromVector(
-                [result.progress]
-            )
+            put("progress", result.progress)
+            iterations = result.iterations
             if result.feasible:
-                yaw = _pose_vector(self._pose.Eval(context))[2]
-                c, s = np.cos(yaw), np.sin(yaw)
-                R = np.array([[c, -s, 0], [s, c, 0], [0, 0, 1]])
-                action_W = (result.action.numpy().reshape(2, 3) @ R.T).ravel()
+                action_W = pose.vector_to_world(
+                    result.action.numpy().reshape(2, 3)
+                ).ravel()
                 steps += 1
             else:
-                code, feasible = TERMINATED_INFEASIBLE, 0.0
+                code = TERMINATED_INFEASIBLE
                 _LOG.warning(
                     "no feasible action at step %d (of %d sampled sequences, "
                     "how many break each rule: %s); releasing",
@@ -203,33 +246,10 @@ class MpcController(LeafSystem):
                     self._mpc.config.num_samples,
                     result.blocked_by,
                 )
-        ms = 1000 * (time.perf_counter() - t0)
-        discrete_state.get_mutable_vector(self._action).SetFromVector(action_W)
-        discrete_state.get_mutable_vector(self._release).SetFromVector(
-            [1.0 if code != RUNNING else 0.0]
-        )
-        discrete_state.get_mutable_vector(self._status).SetFromVector(
-            [feasible, code, steps, ms]
-        )
+        put("action", action_W)
+        put("release", 1.0 if code != RUNNING else 0.0)
+        put("termination", code)
+        put("steps", steps)
+        put("solve_ms", 1000 * (time.perf_counter() - t0))
+        put("iterations", iterations)
         return EventStatus.Succeeded()
-
-
-class SuccessMonitor(LeafSystem):
-    """Task success judged on simulation ground truth (for evaluation only).
-
-    Input ports: ``positions`` (3N cloth vertices, world).
-    Output ports: ``success`` (1).
-
-    Args:
-        judge: callable(positions (N, 3)) -> bool.
-    """
-
-    def __init__(self, *, judge, num_vertices: int):
-        super().__init__()
-        self._judge = judge
-        self._p = self.DeclareVectorInputPort("positions", 3 * num_vertices)
-        self.DeclareVectorOutputPort("success", 1, self._calc)
-
-    def _calc(self, context, output: BasicVector):
-        ok = self._judge(self._p.Eval(context).reshape(-1, 3))
-        output.SetFromVector([1.0 if ok else 0.0])

@@ -76,8 +76,8 @@ class ReleaseLatch(LeafSystem):
     """Latches the ``release`` command: once above 0.5 it stays released.
 
     Opening a grasp changes the plant's constraint parameters, which no system
-    event may do; a simulator monitor (diagrams/station.AddReleaseMonitor)
-    applies it. On hardware the same latch drives the grippers' open command.
+    event may do; the runners' `diagrams/station.AdvanceStationTo` applies
+    it between steps. On hardware the same latch drives the grippers' open command.
 
     Input ports: ``release`` (1-vector).
     Output ports: ``released`` (1-vector, 0 or 1; from state).

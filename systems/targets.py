@@ -12,33 +12,58 @@ class GripperTargetIntegrator(LeafSystem):
     from the current goal to goal + A, and the targets ramp linearly along it
     over the step, so the grippers move smoothly instead of jumping.
 
-    Input ports: ``action`` (6).
+    Input ports: ``action`` (6), ``measured`` (6, optional: the grippers'
+    measured positions [left, right]; when connected, an initialization event
+    starts the targets there).
     Output ports: ``left.ee_target`` (3), ``right.ee_target`` (3),
-    ``goal`` (6, the end of the current segment).
+    ``goal`` (6, the end of the current segment). None depends directly on an
+    input (they are computed from state and time).
 
-    State: discrete [start (6), goal (6), t_start (1)]. Set the initial gripper
-    positions with `SetInitialPositions(context, p_left, p_right)`.
+    State: discrete [start (6), goal (6), t_start (1)]. Without ``measured``,
+    set the initial gripper positions with
+    `SetInitialPositions(context, p_left, p_right)`.
     """
 
     def __init__(self, *, step_seconds: float, offset: float = 0.0):
         super().__init__()
         self._dt = step_seconds
         self._action = self.DeclareVectorInputPort("action", 6)
+        self._measured = self.DeclareVectorInputPort("measured", 6)
         self._state = self.DeclareDiscreteState(13)
         self.DeclarePeriodicDiscreteUpdateEvent(step_seconds, offset, self._latch)
+        self.DeclareInitializationDiscreteUpdateEvent(self._start_at_measured)
+        from_state = {self.time_ticket(), self.discrete_state_ticket(self._state)}
         self.DeclareVectorOutputPort(
-            "left.ee_target", 3, lambda c, o: o.SetFromVector(self._target(c)[:3])
+            "left.ee_target",
+            3,
+            lambda c, o: o.SetFromVector(self._target(c)[:3]),
+            prerequisites_of_calc=from_state,
         )
         self.DeclareVectorOutputPort(
-            "right.ee_target", 3, lambda c, o: o.SetFromVector(self._target(c)[3:])
+            "right.ee_target",
+            3,
+            lambda c, o: o.SetFromVector(self._target(c)[3:]),
+            prerequisites_of_calc=from_state,
         )
         self.DeclareVectorOutputPort(
-            "goal", 6, lambda c, o: o.SetFromVector(self._x(c)[6:12])
+            "goal",
+            6,
+            lambda c, o: o.SetFromVector(self._x(c)[6:12]),
+            prerequisites_of_calc=from_state,
         )
 
     def SetInitialPositions(self, context, p_left, p_right) -> None:
         p = np.concatenate([p_left, p_right])
         context.SetDiscreteState(self._state, np.concatenate([p, p, [0.0]]))
+
+    def _start_at_measured(self, context, discrete_state) -> EventStatus:
+        if not self._measured.HasValue(context):
+            return EventStatus.DidNothing()
+        p = self._measured.Eval(context)
+        discrete_state.get_mutable_vector(self._state).SetFromVector(
+            np.concatenate([p, p, [context.get_time()]])
+        )
+        return EventStatus.Succeeded()
 
     def _x(self, context) -> np.ndarray:
         return context.get_discrete_state(self._state).value()

@@ -19,7 +19,7 @@ def _lift_and_drop(rig: Rig) -> np.ndarray:
     rig.lift(0.06, seconds=0.3, steps=6)
     lifted = rig.positions()
     rig.release()
-    rig.simulator.AdvanceTo(rig.context.get_time() + 0.3)
+    rig.advance_to(rig.context.get_time() + 0.3)
     return np.stack([lifted, rig.positions()])
 
 
@@ -38,11 +38,11 @@ def test_state_lives_in_the_context():
     rig.lift(0.05, seconds=0.2, steps=4)
     saved = rig.context.Clone()
     t = rig.context.get_time()
-    rig.simulator.AdvanceTo(t + 0.1)
+    rig.advance_to(t + 0.1)
     first = rig.positions()
     rig.context.SetTimeStateAndParametersFrom(saved)
     rig.simulator.Initialize()
-    rig.simulator.AdvanceTo(t + 0.1)
+    rig.advance_to(t + 0.1)
     assert np.abs(rig.positions() - first).max() == 0.0
     fresh = rig.station.CreateDefaultContext()
     np.testing.assert_array_equal(

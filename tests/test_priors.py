@@ -202,9 +202,24 @@ def test_training_overfits_a_tiny_dataset(tiny_dataset, tmp_path):
     assert {"f_D_ratio", "f_I_ratio", "keypoint_error_mm"} <= metrics.keys()
 
 
-def test_checkpoint_round_trip_is_exact(tiny_priors, tiny_dataset):
+def test_checkpoint_round_trip_is_exact(tiny_priors, tiny_dataset, tmp_path):
+    """Networks in memory (the trained ones with every weight changed, so
+    nothing can come from the first file) against their reload."""
     out, _ = tiny_priors
-    a, b = load_priors(out), load_priors(out / "priors.pt")
+    a = load_priors(out)
+    gen = torch.Generator().manual_seed(1)
+    with torch.no_grad():
+        for net in (a.f_R, a.f_D, a.f_I):
+            for value in net.state_dict().values():
+                if value.is_floating_point():
+                    value.add_(0.01 * torch.randn(value.shape, generator=gen))
+    a.save(tmp_path / "copy", extra={"prior_states": a.prior_states, "note": "x"})
+    b = load_priors(tmp_path / "copy")
+    for name in ("f_R", "f_D", "f_I"):
+        mine, theirs = getattr(a, name).state_dict(), getattr(b, name).state_dict()
+        assert mine.keys() == theirs.keys()
+        for k in mine:
+            torch.testing.assert_close(mine[k], theirs[k], rtol=0, atol=0)
     ds = LoadDataset(tiny_dataset)
     S, A = ds.arrays["keypoints"][:5], ds.arrays["action"][:5]
     torch.testing.assert_close(a.forward(S, A), b.forward(S, A), rtol=0, atol=0)
@@ -216,7 +231,57 @@ def test_checkpoint_round_trip_is_exact(tiny_priors, tiny_dataset):
         a.keypoints(ds.arrays["mask"][:3], depth),
         b.keypoints(ds.arrays["mask"][:3], depth),
     )
-    assert a.prior_states.shape[1:] == (8, 3)
+    assert b.prior_states.shape[1:] == (8, 3)
+    assert b.metadata["note"] == "x"
+
+
+class _RunsCode:
+    """Unpickling this calls `touch` on a file (what an attack would do)."""
+
+    def __init__(self, path):
+        self.path = str(path)
+
+    def __reduce__(self):
+        return (subprocess.call, (["touch", self.path],))
+
+
+def test_a_checkpoint_that_would_run_code_is_refused(tiny_priors, tmp_path):
+    import hashlib
+    import shutil
+
+    out, _ = tiny_priors
+    bad = tmp_path / "bad"
+    shutil.copytree(out, bad)
+    witness = tmp_path / "code-ran"
+    tensors = torch.load(bad / "priors.pt", weights_only=True)
+    tensors["payload"] = _RunsCode(witness)
+    torch.save(tensors, bad / "priors.pt")
+    description = json.loads((bad / "priors.json").read_text())
+    description["tensors"]["sha256"] = hashlib.sha256(
+        (bad / "priors.pt").read_bytes()
+    ).hexdigest()
+    (bad / "priors.json").write_text(json.dumps(description))
+    with pytest.raises(InputError, match="need pickle"):
+        load_priors(bad)
+    assert not witness.exists()
+    # An old pickled checkpoint (no priors.json) is not even opened.
+    (bad / "priors.json").unlink()
+    with pytest.raises(InputError, match="old pickled checkpoint"):
+        load_priors(bad)
+    assert not witness.exists()
+
+
+def test_a_changed_tensors_file_fails_its_checksum(tiny_priors, tmp_path):
+    import shutil
+
+    out, _ = tiny_priors
+    copy = tmp_path / "copy"
+    shutil.copytree(out, copy)
+    data = bytearray((copy / "priors.pt").read_bytes())
+    data[len(data) // 2] ^= 0xFF
+    (copy / "priors.pt").write_bytes(bytes(data))
+    with pytest.raises(InputError, match="checksum mismatch"):
+        load_priors(copy)
 
 
 def test_mismatched_checkpoints_raise(tiny_priors, tmp_path):
@@ -233,7 +298,8 @@ def test_mismatched_checkpoints_raise(tiny_priors, tmp_path):
 
     with pytest.raises(InputError, match="another camera"):
         load_priors(out, camera=CameraModelFromConfig(scenario.camera))
-    bad = tmp_path / "priors.pt"
-    bad.write_bytes(b"not a checkpoint")
+    (tmp_path / "priors.json").write_text("{not json")
     with pytest.raises(InputError, match="corrupt"):
-        load_priors(bad)
+        load_priors(tmp_path)
+    with pytest.raises(InputError, match="not found"):
+        load_priors(tmp_path / "nowhere")

@@ -3,7 +3,7 @@ import numpy as np
 import pytest
 from fabric_imitation.diagrams.cloth_mesh import TopTriangles
 from fabric_imitation.diagrams.station import (
-    AddReleaseMonitor,
+    AdvanceStationTo,
     GraspCorners,
     MakeClothStation,
     StationPorts,
@@ -44,7 +44,6 @@ class Rig:
         )
         self.station = MakeClothStation(self.scenario)
         self.simulator = Simulator(self.station)
-        AddReleaseMonitor(self.simulator, self.station)
         self.context = self.simulator.get_mutable_context()
         self.corners = GraspCorners(self.scenario)
         self.release(False)
@@ -60,6 +59,9 @@ class Rig:
                 self.context, self.corners[side] + [0, 0, dz]
             )
 
+    def advance_to(self, t):
+        AdvanceStationTo(self.simulator, self.station, t)
+
     def release(self, on=True):
         self.station.GetInputPort("release").FixValue(self.context, [float(on)])
 
@@ -67,7 +69,7 @@ class Rig:
         t0 = self.context.get_time()
         for k in range(steps):
             self.move(height * (k + 1) / steps)
-            self.simulator.AdvanceTo(t0 + seconds * (k + 1) / steps)
+            self.advance_to(t0 + seconds * (k + 1) / steps)
 
     def keypoints(self):
         return np.asarray(self.port(StationPorts.CLOTH_KEYPOINTS)).reshape(-1, 3)
@@ -113,7 +115,7 @@ def test_keypoints_are_ordered_around_the_boundary(engine):
 def test_grasped_corners_follow_a_10cm_lift_within_5mm(engine):
     rig = Rig(engine=engine)
     rig.lift(0.10)
-    rig.simulator.AdvanceTo(rig.context.get_time() + 0.5)
+    rig.advance_to(rig.context.get_time() + 0.5)
     S = rig.keypoints()
     idx = corner_indices(len(S))
     for side, k in (("left", "s1"), ("right", "s2")):
@@ -130,7 +132,7 @@ def test_release_drops_the_cloth_onto_the_table(engine):
     held = rig.keypoints()[0, 2]
     assert held > 0.04
     rig.release()
-    rig.simulator.AdvanceTo(rig.context.get_time() + 1.0)
+    rig.advance_to(rig.context.get_time() + 1.0)
     assert rig.port("released")[0] == 1.0
     p = rig.positions()
     assert p[:, 2].max() < 0.015  # everything lies on the table again
