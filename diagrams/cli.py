@@ -211,20 +211,49 @@ def _add_imitate(p):
         "--video", type=Path, default=None, help="write the camera's view (mp4) here"
     )
     p.add_argument("--seed", type=int, default=None, help="MPC sampling seed")
+    p.add_argument(
+        "--hardware",
+        action="store_true",
+        help="run on real Panda drivers and camera over LCM (a panda scenario, "
+        "e.g. box_panda); nothing is scored against simulation ground truth",
+    )
+    p.add_argument(
+        "--lcm-url",
+        default=None,
+        help="LCM bus for --hardware (default: the scenario's grippers.panda.lcm_url)",
+    )
 
 
 @command("imitate")(_add_imitate)
 def _imitate(args) -> dict:
     from fabric_imitation.diagrams.imitation import Imitate
 
+    scenario = LoadScenarioFromArgs(args)
+    lcm = None
+    if args.hardware:
+        if scenario.grippers.kind != "panda":
+            raise InputError(
+                f"--hardware needs a scenario with Panda arms (grippers.kind: "
+                f"panda), e.g. box_panda; {args.scenario!r} has "
+                f"{scenario.grippers.kind}"
+            )
+        if args.record is not None:
+            raise InputError("--record shows the simulated cloth; not with --hardware")
+        from pydrake.lcm import DrakeLcm
+
+        lcm = DrakeLcm(args.lcm_url or scenario.grippers.panda.lcm_url)
+    elif args.lcm_url is not None:
+        raise InputError("--lcm-url is for --hardware")
     return Imitate(
-        scenario=LoadScenarioFromArgs(args),
+        scenario=scenario,
         scenario_name=args.scenario,
         demo_dir=args.demo,
         priors_dir=args.priors,
         record=args.record,
         video=args.video,
         seed=args.seed,
+        hardware=args.hardware,
+        lcm=lcm,
     )
 
 
@@ -426,8 +455,9 @@ def main(argv: list[str] | None = None) -> int:
     except InputError as e:
         print(f"fabric-imitate: error: {e}", file=sys.stderr)
         return 2
-    except KeyboardInterrupt:
-        print("fabric-imitate: interrupted", file=sys.stderr)
+    except KeyboardInterrupt as e:
+        detail = f" {e}" if str(e) else ""
+        print(f"fabric-imitate: interrupted{detail}", file=sys.stderr)
         return 130
     _print(summary, args.json, out)
     return 0

@@ -3,9 +3,10 @@ PandaCommandSender / PandaStatusReceiver), hand open commands for release, and
 the camera from LCM images. It exports the same ports as the simulated Panda
 station; the simulation-only ground-truth ports carry NaN here.
 
-`MakeSimulatedPandaDrivers` is the other end for tests: a plant with the two
-arms that answers the same LCM channels (PandaCommandReceiver /
-PandaStatusSender), e.g. over `DrakeLcm("memq://")` in one process.
+`MakeSimulatedLab` is the other end without hardware: the simulated cloth
+station whose arms answer the same LCM channels (PandaCommandReceiver /
+PandaStatusSender), whose hand commands open the grasps and whose camera
+publishes lcmt_image_array, e.g. over `DrakeLcm("memq://")` in one process.
 """
 
 import numpy as np
@@ -20,13 +21,8 @@ from fabric_imitation.diagrams.panda import (
     FINGER_OPENING,
     SIDES,
     TCP_FRAME,
-    AddArmActuators,
-    AddPandaModels,
-    ArmCommand,
-    ArmStates,
-    FilterArmCollisions,
+    AddBimanualDiffIk,
     HandOrientation,
-    HandTargets,
     InstanceName,
     MakeBimanualIk,
     SolveHandsAt,
@@ -48,8 +44,9 @@ from pydrake.manipulation import (
     PandaControlMode,
     PandaStatusReceiver,
     PandaStatusSender,
+    SchunkWsgCommandReceiver,
+    SchunkWsgCommandSender,
 )
-from pydrake.multibody.plant import AddMultibodyPlant
 from pydrake.systems.framework import (
     BasicVector,
     Diagram,
@@ -67,11 +64,15 @@ from pydrake.systems.primitives import (
     ConstantVectorSource,
     Demultiplexer,
     Multiplexer,
-    StateInterpolatorWithDiscreteDerivative,
 )
-from pydrake.systems.sensors import LcmImageArrayToImages
+from pydrake.systems.sensors import ImageToLcmImageArrayT, LcmImageArrayToImages
 
 HAND_OPEN_MM = 80.0
+HAND_FORCE = 40.0  # [N] grip force limit sent with every hand command
+# Messages are encoded and decoded in C++ (use_cpp_serializer) where a C++
+# system consumes them. Never subscribe with a Python handler on the
+# DrakeLcm (`lcm.Subscribe(channel, handler)`) while a simulation runs:
+# pydrake 1.58 calls it without the GIL and crashes (segfault, measured).
 
 
 class ArmStateFromStatus(LeafSystem):
@@ -154,29 +155,23 @@ class StatusWatchdog(LeafSystem):
         return EventStatus.Succeeded()
 
 
-class HandOpenCommand(LeafSystem):
-    """lcmt_schunk_wsg_command for a parallel gripper: closed while grasping,
-    open once released.
+class HandOpening(LeafSystem):
+    """The parallel gripper's commanded opening: closed while grasping, open
+    (HAND_OPEN_MM) once released; Drake's SchunkWsgCommandSender turns it
+    into the lcmt_schunk_wsg_command (encoded in C++).
 
     Input ports: ``released`` (1).
-    Output ports: ``command`` (lcmt_schunk_wsg_command).
+    Output ports: ``position`` (1, [m]).
     """
 
     def __init__(self):
         super().__init__()
         self._released = self.DeclareVectorInputPort("released", 1)
-        self.DeclareAbstractOutputPort(
-            "command", lambda: AbstractValue.Make(lcmt_schunk_wsg_command()), self._calc
-        )
+        self.DeclareVectorOutputPort("position", 1, self._calc)
 
-    def _calc(self, context, output) -> None:
-        msg = lcmt_schunk_wsg_command()
-        msg.utime = int(context.get_time() * 1e6)
-        msg.target_position_mm = (
-            HAND_OPEN_MM if self._released.Eval(context)[0] > 0.5 else 0
-        )
-        msg.force = 40.0
-        output.set_value(msg)
+    def _calc(self, context, output: BasicVector) -> None:
+        released = self._released.Eval(context)[0] > 0.5
+        output.SetFromVector([HAND_OPEN_MM / 1000 if released else 0.0])
 
 
 def HandChannel(command_channel: str) -> str:
@@ -198,36 +193,11 @@ def MakeHardwareClothStation(
         side: HandOrientation(side, getattr(config, side).base[2]) for side in SIDES
     }
     q0 = SolveHandsAt(robot_plant, GraspCorners(scenario), orientations)
-    shoulders = {
-        side: np.array([*getattr(config, side).base[:2], 0.333]) for side in SIDES
-    }
-    targets = builder.AddNamedSystem(
-        "hand_targets",
-        HandTargets(
-            frame_names=ik.frame_names,
-            orientations=orientations,
-            shoulders=shoulders,
-            reach=0.80,
-            min_height=0.0,
-            period=dt,
-        ),
-    )
-    controller = builder.AddNamedSystem("diff_ik", ik.controller)
-    builder.Connect(
-        targets.GetOutputPort("desired_poses"), controller.GetInputPort("desired_poses")
-    )
-    nominal = builder.AddNamedSystem("nominal_posture", ConstantVectorSource(q0))
-    builder.Connect(
-        nominal.get_output_port(), controller.GetInputPort("nominal_posture")
-    )
-    stack = builder.AddNamedSystem("arm_states", ArmStates(ARM_JOINTS + 2))
-    builder.Connect(
-        stack.GetOutputPort("state"), controller.GetInputPort("estimated_state")
-    )
+    diff_ik = AddBimanualDiffIk(builder, scenario, ik, q0, orientations)
+    stack = diff_ik.arm_states
     latch = builder.AddNamedSystem("release_latch", ReleaseLatch(period=dt))
     builder.ExportInput(latch.GetInputPort("release"), StationPorts.RELEASE)
     builder.ExportOutput(latch.GetOutputPort("released"), StationPorts.RELEASED)
-    nq = robot_plant.num_positions()
     positions = builder.AddNamedSystem(
         "measured_positions", Demultiplexer([ARM_JOINTS + 2] * 4)
     )
@@ -239,21 +209,7 @@ def MakeHardwareClothStation(
     builder.Connect(full_q.get_output_port(), fk.GetInputPort("positions"))
     for side in SIDES:
         arm = getattr(config, side)
-        builder.ExportInput(
-            targets.GetInputPort(f"{side}.ee_target"), StationPorts.ee_target(side)
-        )
-        command = builder.AddNamedSystem(
-            f"{side}.arm_command",
-            ArmCommand(indices=ik.arm_position_indices[side], nq=nq),
-        )
-        builder.Connect(
-            controller.GetOutputPort("commanded_position"),
-            command.GetInputPort("commanded_position"),
-        )
-        arm_q = builder.AddNamedSystem(
-            f"{side}.arm_commanded", Demultiplexer([ARM_JOINTS, 2])
-        )
-        builder.Connect(command.GetOutputPort("position"), arm_q.get_input_port())
+        arm_q = diff_ik.arm_commanded[side]
         sender = builder.AddNamedSystem(
             f"{side}.command_sender",
             PandaCommandSender(ARM_JOINTS, PandaControlMode.kPosition),
@@ -305,11 +261,14 @@ def MakeHardwareClothStation(
             receiver.GetOutputPort("position_measured"),
             f"{InstanceName(side)}.position_measured",
         )
-        builder.ExportOutput(
-            arm_q.get_output_port(0), f"{InstanceName(side)}.position_commanded"
-        )
-        hand = builder.AddNamedSystem(f"{side}.hand_command", HandOpenCommand())
+        hand = builder.AddNamedSystem(f"{side}.hand_opening", HandOpening())
         builder.Connect(latch.GetOutputPort("released"), hand.GetInputPort("released"))
+        hand_command = builder.AddNamedSystem(
+            f"{side}.hand_command", SchunkWsgCommandSender(HAND_FORCE)
+        )
+        builder.Connect(
+            hand.GetOutputPort("position"), hand_command.GetInputPort("position")
+        )
         hand_pub = builder.AddNamedSystem(
             f"{side}.hand_publisher",
             LcmPublisherSystem.Make(
@@ -317,10 +276,10 @@ def MakeHardwareClothStation(
                 lcmt_schunk_wsg_command,
                 lcm,
                 publish_period=dt,
+                use_cpp_serializer=True,
             ),
         )
-        builder.Connect(hand.GetOutputPort("command"), hand_pub.get_input_port())
-    builder.ExportOutput(targets.GetOutputPort("saturated"), "hands.target_saturated")
+        builder.Connect(hand_command.get_output_port(), hand_pub.get_input_port())
     _add_lcm_camera(builder, scenario, lcm)
     object_pose = builder.AddNamedSystem(
         "object_pose",
@@ -339,20 +298,19 @@ def MakeHardwareClothStation(
     station = builder.Build()
     station.set_name("cloth_station_hardware")
 
-    def initialize(station, station_context):
-        station.GetSubsystemByName("diff_ik").set_initial_position(
-            station.GetMutableSubsystemContext(controller, station_context), q0
-        )
-
-    station.handles = _HardwareHandles(scenario=scenario, initialize=initialize, q0=q0)
+    # The IK's control model and collision checker must outlive the station.
+    station.handles = _HardwareHandles(
+        scenario=scenario, initialize=diff_ik.initialize, q0=q0, ik=ik
+    )
     return station
 
 
 class _HardwareHandles:
-    def __init__(self, *, scenario, initialize, q0):
+    def __init__(self, *, scenario, initialize, q0, ik):
         self.scenario = scenario
         self.initialize = initialize
         self.q0 = q0
+        self.ik = ik
 
 
 def _add_lcm_camera(builder: DiagramBuilder, scenario: Scenario, lcm) -> None:
@@ -366,6 +324,23 @@ def _add_lcm_camera(builder: DiagramBuilder, scenario: Scenario, lcm) -> None:
     )
     images = builder.AddNamedSystem("camera.images", LcmImageArrayToImages())
     builder.Connect(subscriber.get_output_port(), images.image_array_t_input_port())
+    # A camera that stops is caught within one control period: half of one
+    # without a new image (a camera driver sends 15-30 per second).
+    watchdog = builder.AddNamedSystem(
+        "camera.watchdog",
+        CameraWatchdog(
+            channel=channel,
+            timeout=scenario.motion.step_seconds / 2,
+            startup=scenario.grippers.panda.status_timeout,
+            period=scenario.plant_config.time_step,
+        ),
+    )
+    # Its own subscriber, decoding in Python to read the timestamps.
+    stamps = builder.AddNamedSystem(
+        "camera.watchdog_subscriber",
+        LcmSubscriberSystem.Make(channel, lcmt_image_array, lcm),
+    )
+    builder.Connect(stamps.get_output_port(), watchdog.GetInputPort("images"))
     builder.ExportOutput(images.color_image_output_port(), StationPorts.RGB)
     builder.ExportOutput(images.depth_image_output_port(), StationPorts.DEPTH)
     builder.ExportOutput(images.label_image_output_port(), StationPorts.LABEL)
@@ -377,29 +352,143 @@ def _add_lcm_camera(builder: DiagramBuilder, scenario: Scenario, lcm) -> None:
     builder.ExportOutput(mask.GetOutputPort("mask"), StationPorts.MASK)
 
 
-def MakeSimulatedPandaDrivers(scenario: Scenario, *, lcm: DrakeLcm) -> Diagram:
-    """Two simulated Panda drivers on LCM: joint position commands in,
-    status out, arms starting at the grasp configuration."""
+class CameraWatchdog(LeafSystem):
+    """Fails the run with a clear message when the camera's images stop: no
+    image within `startup` seconds of the start, or none for `timeout`
+    seconds since the last (a new image is one with a new timestamp, so a
+    driver that repeats a stale frame counts as stopped).
+
+    Input ports: ``images`` (lcmt_image_array, decoded in Python: the last
+    message).
+    """
+
+    def __init__(self, *, channel: str, timeout: float, startup: float, period: float):
+        super().__init__()
+        self._channel = channel
+        self._timeout, self._startup = timeout, startup
+        self._images = self.DeclareAbstractInputPort(
+            "images", AbstractValue.Make(lcmt_image_array())
+        )
+        # [utime of the last image, time it arrived here, images seen (0/1)]
+        self._state = self.DeclareDiscreteState(3)
+        self.DeclarePeriodicDiscreteUpdateEvent(period, 0.0, self._check)
+
+    def _check(self, context, discrete_state) -> EventStatus:
+        last_utime, arrived, seen = context.get_discrete_state(self._state).value()
+        msg = self._images.Eval(context)
+        t = context.get_time()
+        if msg.num_images > 0 and msg.header.utime != last_utime:
+            last_utime, arrived, seen = msg.header.utime, t, 1.0
+        if not seen and t > self._startup:
+            raise RuntimeError(
+                f"no camera images on {self._channel} for {self._startup:g} s; is "
+                "the camera driver running and on the same LCM bus?"
+            )
+        if seen and t - arrived > self._timeout:
+            raise RuntimeError(
+                f"the camera on {self._channel} stopped sending images at "
+                f"t = {arrived:.2f} s (none for {t - arrived:.2f} s)"
+            )
+        discrete_state.get_mutable_vector(self._state).SetFromVector(
+            [last_utime, arrived, seen]
+        )
+        return EventStatus.Succeeded()
+
+
+def HoldArms(station: Diagram, station_context, scenario: Scenario, lcm) -> None:
+    """Tells both Panda drivers to hold their measured joint positions (one
+    lcmt_panda_command each, published now): what `imitate --hardware` does
+    when it is interrupted."""
+    config = scenario.grippers.panda
+    for side in SIDES:
+        q = np.array(
+            station.GetOutputPort(f"{InstanceName(side)}.position_measured").Eval(
+                station_context
+            )
+        )
+        msg = lcmt_panda_command()
+        msg.utime = int(station_context.get_time() * 1e6)
+        msg.num_joint_position = ARM_JOINTS
+        msg.joint_position = list(q)
+        msg.control_mode_expected = int(PandaControlMode.kPosition)
+        lcm.Publish(getattr(config, side).command_channel, msg.encode())
+
+
+class ReleaseFromHandCommand(LeafSystem):
+    """The simulated lab's reading of the hand commands: released once a
+    hand is told to open (commanded opening above half of HAND_OPEN_MM).
+
+    Input ports: ``left``, ``right`` (1: commanded opening [m], from
+    SchunkWsgCommandReceiver).
+    Output ports: ``release`` (1).
+    """
+
+    def __init__(self):
+        super().__init__()
+        self._hands = [self.DeclareVectorInputPort(side, 1) for side in SIDES]
+        self.DeclareVectorOutputPort("release", 1, self._calc)
+
+    def _calc(self, context, output: BasicVector) -> None:
+        opened = any(
+            port.Eval(context)[0] > HAND_OPEN_MM / 2000 for port in self._hands
+        )
+        output.SetFromVector([1.0 if opened else 0.0])
+
+
+class FreezeAfter(LeafSystem):
+    """Passes an abstract value through, sampled every `period`, until time
+    `until`; then keeps the last one (a camera driver that stalls).
+
+    Input ports: ``u``. Output ports: ``y`` (from state).
+    """
+
+    def __init__(self, model_value: AbstractValue, *, period: float, until: float):
+        super().__init__()
+        self._until = until
+        self._u = self.DeclareAbstractInputPort("u", model_value)
+        self._state = self.DeclareAbstractState(model_value)
+        self.DeclarePeriodicUnrestrictedUpdateEvent(period, 0.0, self._sample)
+        self.DeclareStateOutputPort("y", self._state)
+
+    def _sample(self, context, state) -> EventStatus:
+        if context.get_time() >= self._until:
+            return EventStatus.DidNothing()
+        state.get_mutable_abstract_state(self._state).SetFrom(
+            self._u.EvalAbstract(context)
+        )
+        return EventStatus.Succeeded()
+
+
+def MakeSimulatedLab(
+    scenario: Scenario,
+    *,
+    lcm: DrakeLcm,
+    camera_period: float = 0.05,
+    camera_until: float | None = None,
+) -> tuple[Diagram, Diagram]:
+    """The other end of `MakeHardwareClothStation` without hardware: the
+    simulated cloth station with two Pandas that answer the drivers' LCM
+    channels (joint position commands in, status out, hand commands open the
+    grasps) and a camera that publishes its colour, depth and label images
+    as lcmt_image_array every `camera_period` seconds, as a camera driver
+    does (with `camera_until`, its images stop changing from then on, as a
+    stalled camera's). Returns (lab diagram, its station) -- the station's
+    ground truth is for judging the run afterwards; nothing else connects
+    to it."""
+    from fabric_imitation.diagrams.station import MakeClothStation
+
     config = scenario.grippers.panda
     dt = scenario.plant_config.time_step
     builder = DiagramBuilder()
-    plant, scene_graph = AddMultibodyPlant(scenario.plant_config, builder)
-    instances = AddPandaModels(plant, config)
-    for instance in instances.values():
-        AddArmActuators(plant, instance, config)
-    FilterArmCollisions(plant, scene_graph, instances)
-    plant.Finalize()
-    ik = MakeBimanualIk(scenario, dt)
-    orientations = {
-        side: HandOrientation(side, getattr(config, side).base[2]) for side in SIDES
-    }
-    q0 = SolveHandsAt(ik.robot.plant(), GraspCorners(scenario), orientations)
-    for side, instance in instances.items():
-        plant.SetDefaultPositions(
-            instance,
-            q0[ik.arm_position_indices[side][0] : ik.arm_position_indices[side][0] + 9],
-        )
-        arm = getattr(config, side)
+    station = builder.AddNamedSystem(
+        "lab_station", MakeClothStation(scenario, joint_commands=True)
+    )
+    release = builder.AddNamedSystem("hand_release", ReleaseFromHandCommand())
+    builder.Connect(
+        release.GetOutputPort("release"), station.GetInputPort(StationPorts.RELEASE)
+    )
+    for side in SIDES:
+        arm, name = getattr(config, side), InstanceName(side)
         subscriber = builder.AddNamedSystem(
             f"{side}.command_subscriber",
             LcmSubscriberSystem.Make(
@@ -413,27 +502,13 @@ def MakeSimulatedPandaDrivers(scenario: Scenario, *, lcm: DrakeLcm) -> Diagram:
         builder.Connect(
             subscriber.get_output_port(), receiver.GetInputPort("lcmt_panda_command")
         )
-        state = builder.AddNamedSystem(f"{side}.state", Demultiplexer([7, 2, 7, 2]))
-        builder.Connect(plant.get_state_output_port(instance), state.get_input_port())
         builder.Connect(
-            state.get_output_port(0), receiver.GetInputPort("position_measured")
-        )
-        with_fingers = builder.AddNamedSystem(
-            f"{side}.with_fingers", Multiplexer([7, 2])
-        )
-        fingers = builder.AddNamedSystem(
-            f"{side}.fingers", ConstantVectorSource([FINGER_OPENING] * 2)
+            station.GetOutputPort(f"{name}.position_measured"),
+            receiver.GetInputPort("position_measured"),
         )
         builder.Connect(
-            receiver.GetOutputPort("position"), with_fingers.get_input_port(0)
-        )
-        builder.Connect(fingers.get_output_port(), with_fingers.get_input_port(1))
-        interpolator = builder.AddNamedSystem(
-            f"{side}.interpolator", StateInterpolatorWithDiscreteDerivative(9, dt, True)
-        )
-        builder.Connect(with_fingers.get_output_port(), interpolator.get_input_port())
-        builder.Connect(
-            interpolator.get_output_port(), plant.get_desired_state_input_port(instance)
+            receiver.GetOutputPort("position"),
+            station.GetInputPort(f"{name}.position_command"),
         )
         sender = builder.AddNamedSystem(f"{side}.status_sender", PandaStatusSender(7))
         zeros = builder.AddNamedSystem(
@@ -444,10 +519,12 @@ def MakeSimulatedPandaDrivers(scenario: Scenario, *, lcm: DrakeLcm) -> Diagram:
             sender.GetInputPort("position_commanded"),
         )
         builder.Connect(
-            state.get_output_port(0), sender.GetInputPort("position_measured")
+            station.GetOutputPort(f"{name}.position_measured"),
+            sender.GetInputPort("position_measured"),
         )
         builder.Connect(
-            state.get_output_port(2), sender.GetInputPort("velocity_measured")
+            station.GetOutputPort(f"{name}.velocity_measured"),
+            sender.GetInputPort("velocity_measured"),
         )
         for port in (
             "velocity_commanded",
@@ -468,8 +545,52 @@ def MakeSimulatedPandaDrivers(scenario: Scenario, *, lcm: DrakeLcm) -> Diagram:
             ),
         )
         builder.Connect(sender.get_output_port(), publisher.get_input_port())
-    drivers = builder.Build()
-    drivers.set_name("simulated_panda_drivers")
-    drivers.plant = plant
-    drivers.instances = instances
-    return drivers
+        hand = builder.AddNamedSystem(
+            f"{side}.hand_subscriber",
+            LcmSubscriberSystem.Make(
+                HandChannel(arm.command_channel),
+                lcmt_schunk_wsg_command,
+                lcm,
+                use_cpp_serializer=True,
+            ),
+        )
+        opening = builder.AddNamedSystem(
+            f"{side}.hand_receiver", SchunkWsgCommandReceiver(0.0, HAND_FORCE)
+        )
+        builder.Connect(hand.get_output_port(), opening.GetInputPort("command_message"))
+        builder.Connect(opening.GetOutputPort("position"), release.GetInputPort(side))
+    # Compressed: Drake 1.58's LcmImageArrayToImages decodes uncompressed
+    # float depth and label images only partly (measured: rows after the
+    # first few bytes come back as zeros); the zlib path is exact.
+    images = builder.AddNamedSystem(
+        "camera.to_lcm",
+        ImageToLcmImageArrayT("color", "depth", "label", do_compress=True),
+    )
+    for port, name in (
+        (StationPorts.RGB, "color"),
+        (StationPorts.DEPTH, "depth"),
+        (StationPorts.LABEL, "label"),
+    ):
+        builder.Connect(station.GetOutputPort(port), images.GetInputPort(name))
+    camera = builder.AddNamedSystem(
+        "camera.publisher",
+        LcmPublisherSystem.Make(
+            config.camera_channel,
+            lcmt_image_array,
+            lcm,
+            publish_period=camera_period,
+            use_cpp_serializer=True,
+        ),
+    )
+    message = images.image_array_t_msg_output_port()
+    if camera_until is not None:
+        freeze = builder.AddNamedSystem(
+            "camera.stall",
+            FreezeAfter(message.Allocate(), period=camera_period, until=camera_until),
+        )
+        builder.Connect(message, freeze.GetInputPort("u"))
+        message = freeze.GetOutputPort("y")
+    builder.Connect(message, camera.get_input_port())
+    lab = builder.Build()
+    lab.set_name("simulated_lab")
+    return lab, station

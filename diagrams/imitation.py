@@ -19,7 +19,9 @@ of step k - 1. `EpisodeTransitions` pairs them up.
 """
 
 import dataclasses as dc
+import signal
 import sys
+import threading
 import time
 from pathlib import Path
 
@@ -31,6 +33,7 @@ from fabric_imitation.diagrams.station import (
     SIDES,
     AdvanceStationTo,
     CameraModelFromConfig,
+    GraspCorners,
     InitializeStation,
     MakeClothStation,
     StationPorts,
@@ -181,6 +184,10 @@ class ImitationDiagram:
     loggers: dict[str, VectorLogSink]
     step_seconds: float
     meshcat: object | None = None
+    hardware: bool = False  # the station is made of LCM drivers
+    start_time: float = 0.0  # [s] of the first control step
+    scenario: Scenario | None = None
+    lcm: object | None = None
 
 
 def MakeImitationDiagram(
@@ -190,16 +197,30 @@ def MakeImitationDiagram(
     mpc_config: MpcConfig | None = None,
     meshcat=None,
     seed: int | None = None,
+    hardware: bool = False,
+    lcm=None,
 ) -> ImitationDiagram:
     """Station + perception + demo reward + MPC + target integration, with a
-    logger per signal an episode is scored on (period: the control step)."""
+    logger per signal an episode is scored on (period: the control step).
+
+    With `hardware=True` the station is made of LCM drivers on `lcm`
+    (`MakeClothStation(..., hardware=True)`); the first control step then
+    waits one control period for the drivers' status and the camera's
+    images, the gripper targets start from the measured hands at that step,
+    and nothing reads simulation ground truth."""
     cfg = mpc_config or scenario.mpc
     priors, demo = prepared.priors, prepared.model
     dt = scenario.motion.step_seconds
+    start = dt if hardware else 0.0
     m = priors.num_keypoints
     builder = DiagramBuilder()
+    if hardware:
+        from pydrake.lcm import DrakeLcm
+
+        lcm = lcm or DrakeLcm(scenario.grippers.panda.lcm_url)
     station = builder.AddNamedSystem(
-        "station", MakeClothStation(scenario, meshcat=meshcat)
+        "station",
+        MakeClothStation(scenario, meshcat=meshcat, hardware=hardware, lcm=lcm),
     )
     cam = scenario.camera
     estimator = builder.AddNamedSystem(
@@ -210,7 +231,7 @@ def MakeImitationDiagram(
             width=cam.width,
             height=cam.height,
             period=dt,
-            offset=0.0,
+            offset=start,
         ),
     )
     reward = builder.AddNamedSystem(
@@ -229,13 +250,18 @@ def MakeImitationDiagram(
             mpc=mpc,
             num_keypoints=m,
             period=dt,
-            offset=EVENT_STAGGER,
+            offset=start + EVENT_STAGGER,
             step_cap=int(cfg.step_cap_factor * demo.T) + 5,
             seed=scenario.random_seed if seed is None else seed,
         ),
     )
     targets = builder.AddNamedSystem(
-        "targets", GripperTargetIntegrator(step_seconds=dt, offset=2 * EVENT_STAGGER)
+        "targets",
+        GripperTargetIntegrator(
+            step_seconds=dt,
+            offset=start + 2 * EVENT_STAGGER,
+            start_at_first_step=hardware,
+        ),
     )
     pose = builder.AddNamedSystem("object_pose", PlanarPoseVector())
     builder.Connect(
@@ -290,13 +316,13 @@ def MakeImitationDiagram(
             )
         },
     }
-    if station.HasOutputPort(StationPorts.CLOTH_KEYPOINTS):
+    if not hardware:
         logged["true_keypoints"] = station.GetOutputPort(StationPorts.CLOTH_KEYPOINTS)
     loggers = {}
     for name, port in logged.items():
         loggers[name] = LogVectorOutput(port, builder, publish_period=dt)
         loggers[name].set_name(f"log.{name}")
-    if meshcat is not None and station.HasOutputPort(StationPorts.CLOTH_POSITIONS):
+    if meshcat is not None and not hardware:
         from fabric_imitation.diagrams.cloth_mesh import TopTriangles
 
         mesh = station.handles.mesh
@@ -335,6 +361,10 @@ def MakeImitationDiagram(
         loggers=loggers,
         step_seconds=dt,
         meshcat=meshcat,
+        hardware=hardware,
+        start_time=start,
+        scenario=scenario,
+        lcm=lcm,
     )
 
 
@@ -351,6 +381,7 @@ class EpisodeRun:
     wall_seconds: float
     error: str | None = None
     top_layer: np.ndarray | None = None  # the cloth's top-surface vertices
+    simulator: Simulator | None = None  # the run's, at its end
 
 
 def RunEpisode(
@@ -359,15 +390,36 @@ def RunEpisode(
     settle_seconds: float,
     video: bool = False,
     progress: str | None = None,
+    root: Diagram | None = None,
+    realtime_rate: float = 0.0,
 ) -> EpisodeRun:
     """Simulates until the controller ends the episode, then `settle_seconds`
-    more (the released cloth settles). A diverging simulation ends the run
-    with `error` set; the records up to there are kept."""
+    more (the released cloth settles). A diverging simulation, or a driver or
+    camera that stops, ends the run with `error` set; the records up to
+    there are kept.
+
+    `root`: a diagram that holds `imitation.diagram` and other systems to
+    simulate alongside it (tests: a simulated lab on the same LCM);
+    `realtime_rate`: 1.0 on real drivers.
+
+    Ctrl-C is acted on between control steps: on hardware the arms are told
+    to hold where they are; then KeyboardInterrupt is raised with a message
+    saying when (and that)."""
     t0 = time.perf_counter()
     station = imitation.station
-    simulator = Simulator(imitation.diagram)
+    simulator = Simulator(root or imitation.diagram)
+    simulator.set_target_realtime_rate(realtime_rate)
     context = simulator.get_mutable_context()
     InitializeStation(station, station.GetMyMutableContextFromRoot(context))
+    if imitation.hardware:
+        # Until its first step the targets hold the grasp corners, where the
+        # station's IK assumes the hands start.
+        corners = GraspCorners(imitation.scenario)
+        imitation.targets.SetInitialPositions(
+            imitation.targets.GetMyMutableContextFromRoot(context),
+            corners["left"],
+            corners["right"],
+        )
     simulator.Initialize()
     station_context = station.GetMyContextFromRoot(context)
     controller_context = imitation.controller.GetMyContextFromRoot(context)
@@ -378,30 +430,41 @@ def RunEpisode(
         from tqdm import tqdm
 
         bar = tqdm(desc=progress, unit="step", file=sys.stderr, leave=False)
-    try:
-        k = 0
-        while True:
-            AdvanceStationTo(simulator, station, k * dt + 3 * EVENT_STAGGER)
-            if first_action_s is None:
-                first_action_s = time.perf_counter() - t0
-            if termination.Eval(controller_context)[0] != RUNNING:
-                break
-            if video and k > 0:
-                frames.append(CaptureFrame(station, station_context).rgb)
+    start = imitation.start_time
+    with _CtrlC() as ctrl_c:
+        try:
+            k = 0
+            while True:
+                t = start + k * dt + 3 * EVENT_STAGGER
+                AdvanceStationTo(simulator, station, t)
+                ctrl_c.check()
+                if first_action_s is None:
+                    first_action_s = time.perf_counter() - t0
+                if termination.Eval(controller_context)[0] != RUNNING:
+                    break
+                if video and k > 0:
+                    frames.append(CaptureFrame(station, station_context).rgb)
+                if bar is not None:
+                    bar.update()
+                k += 1
+            end = context.get_time() + settle_seconds
+            while context.get_time() < end - 1e-9:
+                AdvanceStationTo(simulator, station, min(end, context.get_time() + dt))
+                ctrl_c.check()
+        except RuntimeError as e:
+            error = " ".join(str(e).split())[:300]
+        except KeyboardInterrupt:
+            message = f"at t = {context.get_time():.2f} s"
+            if imitation.hardware:
+                from fabric_imitation.diagrams.hardware import HoldArms
+
+                HoldArms(station, station_context, imitation.scenario, imitation.lcm)
+                message += "; both arms were told to hold their measured positions"
+            raise KeyboardInterrupt(message) from None
+        finally:
             if bar is not None:
-                bar.update()
-            k += 1
-        AdvanceStationTo(simulator, station, context.get_time() + settle_seconds)
-    except RuntimeError as e:
-        error = " ".join(str(e).split())[:300]
-    finally:
-        if bar is not None:
-            bar.close()
-    final = (
-        CaptureFrame(station, station_context)
-        if station.HasOutputPort(StationPorts.CLOTH_POSITIONS)
-        else None
-    )
+                bar.close()
+    final = None if imitation.hardware else CaptureFrame(station, station_context)
     logs, times = {}, None
     for name, logger in imitation.loggers.items():
         log = logger.FindLog(context)
@@ -415,8 +478,33 @@ def RunEpisode(
         first_action_s=first_action_s or float("nan"),
         wall_seconds=time.perf_counter() - t0,
         error=error,
-        top_layer=station.handles.mesh.top_layer if final is not None else None,
+        top_layer=None if imitation.hardware else station.handles.mesh.top_layer,
+        simulator=simulator,
     )
+
+
+class _CtrlC:
+    """Ctrl-C (SIGINT) during a run sets a flag instead of raising inside a
+    system's callback (which Drake's C++ cannot unwind through); `check()`,
+    called between `AdvanceTo` calls, then raises KeyboardInterrupt there."""
+
+    def __enter__(self):
+        self._hit = False
+        self._previous = None
+        if threading.current_thread() is threading.main_thread():
+            self._previous = signal.signal(signal.SIGINT, self._on_sigint)
+        return self
+
+    def _on_sigint(self, signum, frame) -> None:
+        self._hit = True
+
+    def check(self) -> None:
+        if self._hit:
+            raise KeyboardInterrupt
+
+    def __exit__(self, *exc) -> None:
+        if self._previous is not None:
+            signal.signal(signal.SIGINT, self._previous)
 
 
 @dc.dataclass
@@ -551,6 +639,11 @@ def ScoreEpisode(
         )
         summary["rule_breaks_true"] = true
         summary["executed_violations_ground_truth"] = true["any"]
+    if tr.true_before is None:
+        summary["ground_truth"] = (
+            "none on hardware: success, IoU, Chamfer distance and rule breaks on "
+            "the true cloth are not scored"
+        )
     if run.final is not None:
         final = run.final
         report = TaskSuccess(scenario, final.positions_W, run.top_layer)
@@ -594,9 +687,17 @@ def Imitate(
     video: Path | None = None,
     progress: bool = True,
     seed: int | None = None,
+    hardware: bool = False,
+    lcm=None,
+    co_simulate=None,
 ) -> dict:
     """Runs one imitation episode; returns the JSON summary. `prepared` (from
-    `PrepareImitation`) skips learning from the demo again."""
+    `PrepareImitation`) skips learning from the demo again.
+
+    `hardware`: on real Panda drivers and camera over LCM (`lcm`, default:
+    the scenario's bus), in real time. `co_simulate(lcm) -> Diagram`: a
+    diagram simulated alongside on the same `lcm` (tests: `MakeSimulatedLab`
+    over memq); then the run is not paced to real time."""
     wall0 = time.perf_counter()
     torch.set_num_threads(min(2, torch.get_num_threads()))
     if prepared is None:
@@ -610,8 +711,20 @@ def Imitate(
     t_build = time.perf_counter()
     meshcat = MakeRecordingMeshcat() if record else None
     imitation = MakeImitationDiagram(
-        scenario, prepared, mpc_config=mpc_config, meshcat=meshcat, seed=seed
+        scenario,
+        prepared,
+        mpc_config=mpc_config,
+        meshcat=meshcat,
+        seed=seed,
+        hardware=hardware,
+        lcm=lcm,
     )
+    root = None
+    if co_simulate is not None:
+        builder = DiagramBuilder()
+        builder.AddSystem(imitation.diagram)
+        builder.AddSystem(co_simulate(imitation.lcm))
+        root = builder.Build()
     imitation.mpc.WarmUp(prepared.demo_states[0])
     build_s = time.perf_counter() - t_build
     run = RunEpisode(
@@ -619,16 +732,19 @@ def Imitate(
         settle_seconds=scenario.motion.settle_seconds,
         video=video is not None,
         progress=f"imitate {scenario_name}" if progress else None,
+        root=root,
+        realtime_rate=1.0 if hardware and co_simulate is None else 0.0,
     )
     summary = {
         "scenario": scenario_name,
+        "station": "hardware (LCM drivers)" if hardware else "simulation",
         "object_pose": list(scenario.object.pose),
         **ScoreEpisode(scenario, prepared, run),
     }
-    if video is not None and run.final is not None:
-        WriteVideo(
-            video, run.frames + [run.final.rgb], 1.0 / scenario.motion.step_seconds
-        )
+    if video is not None:
+        fps = 1.0 / scenario.motion.step_seconds
+        last = [run.final.rgb] if run.final is not None else []
+        WriteVideo(video, run.frames + last, fps)
     if record is not None:
         SaveRecording(meshcat, record)
     summary.update(

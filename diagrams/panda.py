@@ -36,6 +36,7 @@ from pydrake.systems.framework import BasicVector, BusValue, LeafSystem
 from pydrake.systems.primitives import (
     ConstantVectorSource,
     Demultiplexer,
+    Multiplexer,
     StateInterpolatorWithDiscreteDerivative,
 )
 
@@ -360,6 +361,105 @@ def SolveHandsAt(
     return q
 
 
+# The Panda's shoulder (joint 2) above its base [m], and how far from it the
+# hand targets may go [m]: the arm's reach, less a margin that keeps the IK
+# away from full stretch.
+SHOULDER_HEIGHT = 0.333
+HAND_REACH = 0.80
+
+
+@dc.dataclass
+class BimanualDiffIk:
+    """The arms' command side, shared by the simulated and the hardware
+    station: gripper targets -> HandTargets -> differential IK -> one joint
+    command per arm. What feeds ``arm_states`` (the measured joints) and
+    what the commands drive (a plant or LCM drivers) differ."""
+
+    arm_states: LeafSystem  # inputs "{side}_state"
+    commands: dict  # side -> ArmCommand (output "position": arm + fingers)
+    arm_commanded: dict  # side -> Demultiplexer (output 0: the 7 arm joints)
+    initialize: object  # (station, station_context) -> None: IK starts at q0
+
+
+def AddBimanualDiffIk(
+    builder, scenario: Scenario, ik: BimanualIk, q0: np.ndarray, orientations: dict
+) -> BimanualDiffIk:
+    """Adds hand targets, the bimanual differential IK and per-arm joint
+    commands to `builder`; exports ``{side}.ee_target``,
+    ``{arm}.position_commanded`` and ``hands.target_saturated``."""
+    from fabric_imitation.diagrams.station import StationPorts
+
+    config = scenario.grippers.panda
+    dt = scenario.plant_config.time_step
+    shoulders = {
+        side: np.array([*getattr(config, side).base[:2], SHOULDER_HEIGHT])
+        for side in SIDES
+    }
+    targets = builder.AddNamedSystem(
+        "hand_targets",
+        HandTargets(
+            frame_names=ik.frame_names,
+            orientations=orientations,
+            shoulders=shoulders,
+            reach=HAND_REACH,
+            min_height=0.0,
+            period=dt,
+        ),
+    )
+    controller = builder.AddNamedSystem("diff_ik", ik.controller)
+    builder.Connect(
+        targets.GetOutputPort("desired_poses"), controller.GetInputPort("desired_poses")
+    )
+    nominal = builder.AddNamedSystem("nominal_posture", ConstantVectorSource(q0))
+    builder.Connect(
+        nominal.get_output_port(), controller.GetInputPort("nominal_posture")
+    )
+    stack = builder.AddNamedSystem("arm_states", ArmStates(ARM_JOINTS + 2))
+    builder.Connect(
+        stack.GetOutputPort("state"), controller.GetInputPort("estimated_state")
+    )
+    nq = ik.robot.plant().num_positions()
+    commands, arm_commanded = {}, {}
+    for side in SIDES:
+        builder.ExportInput(
+            targets.GetInputPort(f"{side}.ee_target"), StationPorts.ee_target(side)
+        )
+        commands[side] = builder.AddNamedSystem(
+            f"{side}.arm_command",
+            ArmCommand(indices=ik.arm_position_indices[side], nq=nq),
+        )
+        builder.Connect(
+            controller.GetOutputPort("commanded_position"),
+            commands[side].GetInputPort("commanded_position"),
+        )
+        arm_commanded[side] = builder.AddNamedSystem(
+            f"{side}.arm_commanded", Demultiplexer([ARM_JOINTS, 2])
+        )
+        builder.Connect(
+            commands[side].GetOutputPort("position"),
+            arm_commanded[side].get_input_port(),
+        )
+        builder.ExportOutput(
+            arm_commanded[side].get_output_port(0),
+            f"{InstanceName(side)}.position_commanded",
+        )
+    builder.ExportOutput(targets.GetOutputPort("saturated"), "hands.target_saturated")
+    q_start = np.array(q0, copy=True)
+
+    def initialize(station, station_context):
+        ik_controller = station.GetSubsystemByName("diff_ik")
+        ik_controller.set_initial_position(
+            station.GetMutableSubsystemContext(ik_controller, station_context), q_start
+        )
+
+    return BimanualDiffIk(
+        arm_states=stack,
+        commands=commands,
+        arm_commanded=arm_commanded,
+        initialize=initialize,
+    )
+
+
 @dc.dataclass
 class PandaGrippers:
     """Arms added to a station plant; `Wire` connects them after Finalize."""
@@ -374,14 +474,19 @@ class PandaGrippers:
     q0: np.ndarray  # control-plant positions at the grasp corners
     orientations: dict
 
-    def Wire(self, builder):
+    def Wire(self, builder, *, joint_commands: bool = False):
         """Targets -> HandTargets -> diff IK -> joint PD; exports the ports.
-        Returns the context initializer."""
+        Returns the context initializer.
+
+        With `joint_commands` the arms take joint positions from outside
+        instead (what a Panda driver does with an lcmt_panda_command): input
+        ``{arm}.position_command`` (7) per arm, plus output
+        ``{arm}.velocity_measured``; no IK, no ``ee_target`` inputs, no
+        initializer (the arms start at the grasp configuration)."""
         from fabric_imitation.diagrams.station import StationPorts
 
         plant, scenario = self.plant, self.scenario
         dt = scenario.plant_config.time_step
-        config = scenario.grippers.panda
         robot_plant = self.ik.robot.plant()
         # Default joint angles: the IK solution at the grasp corners.
         for side, instance in self.instances.items():
@@ -395,42 +500,6 @@ class PandaGrippers:
                 plant.GetJointByName(name, instance).set_default_translation(
                     FINGER_OPENING
                 )
-        shoulders = {}
-        for side in SIDES:
-            base = getattr(config, side).base
-            shoulders[side] = np.array([base[0], base[1], 0.333])
-        targets = builder.AddNamedSystem(
-            "hand_targets",
-            HandTargets(
-                frame_names=self.ik.frame_names,
-                orientations=self.orientations,
-                shoulders=shoulders,
-                reach=0.80,
-                min_height=0.0,
-                period=dt,
-            ),
-        )
-        controller = builder.AddNamedSystem("diff_ik", self.ik.controller)
-        builder.Connect(
-            targets.GetOutputPort("desired_poses"),
-            controller.GetInputPort("desired_poses"),
-        )
-        stack = builder.AddNamedSystem("arm_states", ArmStates(ARM_JOINTS + 2))
-        for side in SIDES:
-            builder.Connect(
-                plant.get_state_output_port(self.instances[side]),
-                stack.GetInputPort(f"{side}_state"),
-            )
-        builder.Connect(
-            stack.GetOutputPort("state"), controller.GetInputPort("estimated_state")
-        )
-        nominal = builder.AddNamedSystem(
-            "nominal_posture", ConstantVectorSource(self.q0)
-        )
-        builder.Connect(
-            nominal.get_output_port(), controller.GetInputPort("nominal_posture")
-        )
-        nq = robot_plant.num_positions()
         tcp = builder.AddNamedSystem(
             "tcp_positions",
             TcpPositions(
@@ -440,24 +509,24 @@ class PandaGrippers:
         builder.Connect(
             plant.get_body_poses_output_port(), tcp.GetInputPort("body_poses")
         )
+        if joint_commands:
+            self._WireJointCommands(builder, tcp)
+            return None
+        diff_ik = AddBimanualDiffIk(
+            builder, scenario, self.ik, self.q0, self.orientations
+        )
         for side in SIDES:
-            builder.ExportInput(
-                targets.GetInputPort(f"{side}.ee_target"), StationPorts.ee_target(side)
-            )
-            command = builder.AddNamedSystem(
-                f"{side}.arm_command",
-                ArmCommand(indices=self.ik.arm_position_indices[side], nq=nq),
-            )
             builder.Connect(
-                controller.GetOutputPort("commanded_position"),
-                command.GetInputPort("commanded_position"),
+                plant.get_state_output_port(self.instances[side]),
+                diff_ik.arm_states.GetInputPort(f"{side}_state"),
             )
             interpolator = builder.AddNamedSystem(
                 f"{side}.joint_interpolator",
                 StateInterpolatorWithDiscreteDerivative(ARM_JOINTS + 2, dt, True),
             )
             builder.Connect(
-                command.GetOutputPort("position"), interpolator.get_input_port()
+                diff_ik.commands[side].GetOutputPort("position"),
+                interpolator.get_input_port(),
             )
             builder.Connect(
                 interpolator.get_output_port(),
@@ -476,25 +545,43 @@ class PandaGrippers:
             builder.ExportOutput(
                 arm_q.get_output_port(0), f"{InstanceName(side)}.position_measured"
             )
-            cmd_q = builder.AddNamedSystem(
-                f"{side}.arm_commanded", Demultiplexer([ARM_JOINTS, 2])
-            )
-            builder.Connect(command.GetOutputPort("position"), cmd_q.get_input_port())
-            builder.ExportOutput(
-                cmd_q.get_output_port(0), f"{InstanceName(side)}.position_commanded"
-            )
-        builder.ExportOutput(
-            targets.GetOutputPort("saturated"), "hands.target_saturated"
+        return diff_ik.initialize
+
+    def _WireJointCommands(self, builder, tcp) -> None:
+        from fabric_imitation.diagrams.station import StationPorts
+
+        dt = self.scenario.plant_config.time_step
+        fingers = builder.AddNamedSystem(
+            "finger_opening", ConstantVectorSource([FINGER_OPENING] * 2)
         )
-        q0 = self.q0.copy()
-
-        def initialize(station, station_context):
-            ctrl = station.GetSubsystemByName("diff_ik")
-            ctrl.set_initial_position(
-                station.GetMutableSubsystemContext(ctrl, station_context), q0
+        for side in SIDES:
+            arm = InstanceName(side)
+            command = builder.AddNamedSystem(
+                f"{side}.arm_command", Multiplexer([ARM_JOINTS, 2])
             )
-
-        return initialize
+            builder.ExportInput(command.get_input_port(0), f"{arm}.position_command")
+            builder.Connect(fingers.get_output_port(), command.get_input_port(1))
+            interpolator = builder.AddNamedSystem(
+                f"{side}.joint_interpolator",
+                StateInterpolatorWithDiscreteDerivative(ARM_JOINTS + 2, dt, True),
+            )
+            builder.Connect(command.get_output_port(), interpolator.get_input_port())
+            builder.Connect(
+                interpolator.get_output_port(),
+                self.plant.get_desired_state_input_port(self.instances[side]),
+            )
+            state = builder.AddNamedSystem(
+                f"{side}.arm_state", Demultiplexer([ARM_JOINTS, 2, ARM_JOINTS, 2])
+            )
+            builder.Connect(
+                self.plant.get_state_output_port(self.instances[side]),
+                state.get_input_port(),
+            )
+            builder.ExportOutput(state.get_output_port(0), f"{arm}.position_measured")
+            builder.ExportOutput(state.get_output_port(2), f"{arm}.velocity_measured")
+            builder.ExportOutput(
+                tcp.GetOutputPort(side), StationPorts.ee_measured(side)
+            )
 
 
 def AddPandaGrippers(

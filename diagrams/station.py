@@ -425,7 +425,12 @@ def _add_clip(
 
 
 def MakeClothStation(
-    scenario: Scenario, *, meshcat=None, hardware: bool = False, lcm=None
+    scenario: Scenario,
+    *,
+    meshcat=None,
+    hardware: bool = False,
+    lcm=None,
+    joint_commands: bool = False,
 ) -> Diagram:
     """Builds the cloth station for `scenario` (see module docstring).
 
@@ -436,15 +441,20 @@ def MakeClothStation(
     one bimanual differential-IK controller inside the station; the ports are
     the same, plus each arm's joint positions and the IK saturation flags.
     Call `InitializeStation(station, station_context)` on a new context (the
-    runners here do) before simulating.
+    runners here do) before simulating. With `joint_commands=True` the
+    simulated arms take joint positions (``{arm}.position_command``) instead
+    of gripper targets, as real Panda drivers do (diagrams/hardware.py's
+    `MakeSimulatedLab` puts such a station behind LCM).
 
     Args:
         scenario: a validated Scenario.
         meshcat: optional pydrake Meshcat to visualise in.
     """
+    if (hardware or joint_commands) and scenario.grippers.kind != "panda":
+        raise InputError(
+            "a hardware station or joint commands need grippers.kind: panda"
+        )
     if hardware:
-        if scenario.grippers.kind != "panda":
-            raise InputError("a hardware station needs grippers.kind: panda")
         from fabric_imitation.diagrams.hardware import MakeHardwareClothStation
 
         return MakeHardwareClothStation(scenario, lcm=lcm)
@@ -492,7 +502,7 @@ def MakeClothStation(
 
     initialize = None
     if scenario.grippers.kind == "panda":
-        initialize = pandas.Wire(builder)
+        initialize = pandas.Wire(builder, joint_commands=joint_commands)
         measured = {
             side: builder.GetSubsystemByName("tcp_positions").GetOutputPort(side)
             for side in SIDES
@@ -648,7 +658,7 @@ def CameraModelFromConfig(config):
 
 def _welded(station: Diagram, root_context) -> bool:
     handles = getattr(station, "handles", None)
-    if handles is None or not handles.weld_ids:
+    if handles is None or not getattr(handles, "weld_ids", None):
         return False
     plant_context = handles.plant.GetMyContextFromRoot(root_context)
     return any(

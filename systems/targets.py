@@ -14,22 +14,31 @@ class GripperTargetIntegrator(LeafSystem):
 
     Input ports: ``action`` (6), ``measured`` (6, optional: the grippers'
     measured positions [left, right]; when connected, an initialization event
-    starts the targets there).
+    starts the targets there, or, with `start_at_first_step`, the first
+    latch does: on real drivers the measurement is valid only once their
+    first status has arrived).
     Output ports: ``left.ee_target`` (3), ``right.ee_target`` (3),
     ``goal`` (6, the end of the current segment). None depends directly on an
     input (they are computed from state and time).
 
-    State: discrete [start (6), goal (6), t_start (1)]. Without ``measured``,
-    set the initial gripper positions with
+    State: discrete [start (6), goal (6), t_start (1), started (1)]. Until
+    then the targets are the initial positions:
     `SetInitialPositions(context, p_left, p_right)`.
     """
 
-    def __init__(self, *, step_seconds: float, offset: float = 0.0):
+    def __init__(
+        self,
+        *,
+        step_seconds: float,
+        offset: float = 0.0,
+        start_at_first_step: bool = False,
+    ):
         super().__init__()
         self._dt = step_seconds
+        self._late_start = start_at_first_step
         self._action = self.DeclareVectorInputPort("action", 6)
         self._measured = self.DeclareVectorInputPort("measured", 6)
-        self._state = self.DeclareDiscreteState(13)
+        self._state = self.DeclareDiscreteState(14)
         self.DeclarePeriodicDiscreteUpdateEvent(step_seconds, offset, self._latch)
         self.DeclareInitializationDiscreteUpdateEvent(self._start_at_measured)
         from_state = {self.time_ticket(), self.discrete_state_ticket(self._state)}
@@ -54,14 +63,14 @@ class GripperTargetIntegrator(LeafSystem):
 
     def SetInitialPositions(self, context, p_left, p_right) -> None:
         p = np.concatenate([p_left, p_right])
-        context.SetDiscreteState(self._state, np.concatenate([p, p, [0.0]]))
+        context.SetDiscreteState(self._state, np.concatenate([p, p, [0.0, 0.0]]))
 
     def _start_at_measured(self, context, discrete_state) -> EventStatus:
-        if not self._measured.HasValue(context):
+        if self._late_start or not self._measured.HasValue(context):
             return EventStatus.DidNothing()
         p = self._measured.Eval(context)
         discrete_state.get_mutable_vector(self._state).SetFromVector(
-            np.concatenate([p, p, [context.get_time()]])
+            np.concatenate([p, p, [context.get_time(), 1.0]])
         )
         return EventStatus.Succeeded()
 
@@ -76,9 +85,11 @@ class GripperTargetIntegrator(LeafSystem):
     def _latch(self, context, discrete_state) -> EventStatus:
         x = self._x(context)
         action = self._action.Eval(context) if self._action.HasValue(context) else 0
-        goal = x[6:12] + action
+        start = x[6:12]
+        if not x[13] and self._late_start and self._measured.HasValue(context):
+            start = self._measured.Eval(context)
         discrete_state.get_mutable_vector(self._state).SetFromVector(
-            np.concatenate([x[6:12], goal, [context.get_time()]])
+            np.concatenate([start, start + action, [context.get_time(), 1.0]])
         )
         return EventStatus.Succeeded()
 

@@ -3,7 +3,7 @@ in-process LCM loop, joint limits under random targets, bad input."""
 
 import numpy as np
 import pytest
-from fabric_imitation.diagrams.hardware import MakeSimulatedPandaDrivers
+from fabric_imitation.diagrams.hardware import MakeSimulatedLab
 from fabric_imitation.diagrams.station import (
     GraspCorners,
     InitializeStation,
@@ -80,7 +80,7 @@ def lcm_rig():
     station = builder.AddNamedSystem(
         "station", MakeClothStation(s, hardware=True, lcm=lcm)
     )
-    builder.AddNamedSystem("drivers", MakeSimulatedPandaDrivers(s, lcm=lcm))
+    builder.AddNamedSystem("lab", MakeSimulatedLab(s, lcm=lcm)[0])
     return Rig(builder.Build(), station)
 
 
