@@ -331,30 +331,27 @@ def BenchMpc(
     demo frames, training f_A, first solve)."""
     import torch
     from fabric_imitation.diagrams.imitation import (
-        DEFAULT_DEMOS,
-        DEFAULT_PRIORS,
-        DemoStates,
+        DefaultDemoDir,
         ObjectSafetyContext,
+        PrepareImitation,
     )
-    from fabric_imitation.learning.demo_io import LoadDemo
-    from fabric_imitation.learning.demo_learning import learn_from_demo
     from fabric_imitation.learning.mpc import Mpc
-    from fabric_imitation.learning.priors import load_priors
 
     torch.set_num_threads(2)
     scenario = LoadScenario(scenario_name=scenario_name)
-    priors = load_priors(priors_dir or DEFAULT_PRIORS)
     t0 = time.perf_counter()
-    demo = LoadDemo(demo_dir or DEFAULT_DEMOS / scenario_name)
-    states = DemoStates(priors, demo)
-    t_fr = time.perf_counter() - t0
-    model, info = learn_from_demo(states, priors.prior_states, scenario.reward)
+    prepared = PrepareImitation(
+        scenario,
+        demo_dir=demo_dir or DefaultDemoDir(scenario_name, scenario),
+        priors_dir=priors_dir,
+    )
+    states, info = prepared.demo_states, prepared.registration
     config = dc.replace(scenario.mpc, num_samples=num_samples, horizon=horizon)
     mpc = Mpc(
-        dynamics=priors,
-        demo=model,
+        dynamics=prepared.priors,
+        demo=prepared.model,
         safety=scenario.safety,
-        safety_ctx=ObjectSafetyContext(scenario),
+        safety_ctx=ObjectSafetyContext(scenario, estimated=True),
         config=config,
     )
     first = mpc.solve(torch.as_tensor(states[0], dtype=torch.float32))
@@ -384,7 +381,7 @@ def BenchMpc(
         "iterations_mean": round(float(np.mean(iters)), 2),
         "feasible_fraction": round(feasible / steps, 3),
         "demo_to_first_action_s": round(demo_to_first, 2),
-        "demo_keypoints_s": round(t_fr, 2),
+        "prepare_s": round(prepared.seconds, 2),
         "registration_s": info["registration_seconds"],
         "first_solve_ms": round(1000 * first.seconds, 1),
         "targets": {"p95_ms": 100, "demo_to_first_action_s": 60},

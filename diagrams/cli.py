@@ -4,6 +4,7 @@ calls one keyword-only library function; every subcommand accepts --json
 
 import argparse
 import json
+import logging
 import sys
 from collections.abc import Callable
 from pathlib import Path
@@ -446,6 +447,9 @@ def _stdout_for_summary_only():
 
 
 def main(argv: list[str] | None = None) -> int:
+    # torch.compile imports torch's C++ extension helper, which warns on every
+    # run that a machine without CUDA has no CUDA runtime; nothing here uses it.
+    logging.getLogger("torch.utils.cpp_extension").setLevel(logging.ERROR)
     parser = _build_parser()
     args = parser.parse_args(argv)
     _, run = _COMMANDS[args._name]

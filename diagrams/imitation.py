@@ -87,7 +87,7 @@ def ObjectSafetyContext(
         workspace_upper=np.array(scenario.workspace.upper, float),
         object_size=_object_size(scenario),
         frame_pose=np.array(PlanarPose.FromDegrees(scenario.object.pose)),
-        far_corners_may_hang=estimated,
+        far_corners_may_hang=estimated and scenario.safety.hidden_corners_hang,
     )
 
 

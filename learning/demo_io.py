@@ -97,7 +97,8 @@ class Demo:
         return self.manifest["task"]
 
 
-def _sha256(path: Path) -> str:
+def FileSha256(path: Path) -> str:
+    """sha256 hex digest of a file, read in 1 MiB blocks."""
     h = hashlib.sha256()
     with open(path, "rb") as f:
         for block in iter(lambda: f.read(1 << 20), b""):
@@ -159,7 +160,7 @@ def WriteDemo(
         (tmp / "camera.json").write_text(json.dumps(camera.to_json(), indent=1))
         (tmp / "scenario.yaml").write_text(scenario_yaml)
         np.savez_compressed(tmp / "ground_truth.npz", **ground_truth)
-        files = {p.name: _sha256(p) for p in sorted(tmp.iterdir())}
+        files = {p.name: FileSha256(p) for p in sorted(tmp.iterdir())}
         manifest = {
             "format": DEMO_FORMAT,
             "version": DEMO_VERSION,
@@ -221,7 +222,7 @@ def LoadDemo(path: Path | str, *, verify: bool = True) -> Demo:
         f = path / name
         if not f.is_file():
             raise InputError(f"demo {path}: file {name} is missing")
-        if verify and _sha256(f) != digest:
+        if verify and FileSha256(f) != digest:
             raise InputError(
                 f"demo {path}: file {name} is truncated or changed (checksum mismatch)"
             )

@@ -7,13 +7,13 @@ or an object frame); f_D and f_I work in each state's canonical frame
 """
 
 import dataclasses as dc
-import hashlib
 import json
 import pickle
 from pathlib import Path
 
 import numpy as np
 import torch
+from fabric_imitation.learning.demo_io import FileSha256
 from fabric_imitation.learning.errors import InputError
 from fabric_imitation.learning.geometry import (
     PinholeCamera,
@@ -180,7 +180,7 @@ class Priors:
             "config": self.config,
             "norms": sorted(self.norms),
             "metadata": metadata,
-            "tensors": {"file": CHECKPOINT_FILE, "sha256": _sha256(tmp)},
+            "tensors": {"file": CHECKPOINT_FILE, "sha256": FileSha256(tmp)},
         }
         json_path = directory / CHECKPOINT_JSON
         json_tmp = json_path.with_name(json_path.name + ".partial")
@@ -190,14 +190,6 @@ class Priors:
         tmp.replace(path)
         json_tmp.replace(json_path)
         return json_path
-
-
-def _sha256(path: Path) -> str:
-    h = hashlib.sha256()
-    with open(path, "rb") as f:
-        for chunk in iter(lambda: f.read(1 << 20), b""):
-            h.update(chunk)
-    return h.hexdigest()
 
 
 def _batch_images(x) -> torch.Tensor:
@@ -271,7 +263,7 @@ def load_priors(
             raise InputError(f"priors {manifest} is corrupt") from None
         for name, digest in listed.items():
             f = directory / name
-            if not f.is_file() or _sha256(f) != digest:
+            if not f.is_file() or FileSha256(f) != digest:
                 raise InputError(
                     f"priors {f} is missing, truncated or changed (checksum "
                     f"mismatch with {manifest.name})"
@@ -279,7 +271,7 @@ def load_priors(
     tensors_file = directory / description["tensors"]["file"]
     if not tensors_file.is_file():
         raise InputError(f"priors checkpoint {file}: {tensors_file.name} is missing")
-    if _sha256(tensors_file) != description["tensors"]["sha256"]:
+    if FileSha256(tensors_file) != description["tensors"]["sha256"]:
         raise InputError(
             f"priors {tensors_file} is truncated or changed (checksum mismatch)"
         )

@@ -26,6 +26,13 @@ class SafetyConfig:
     object_margin: float = 0.02
     # Action bound [m] per axis per step.
     max_step: float = 0.03
+    # The controller's view only (states estimated from the camera): judge
+    # rule 2 also with the far corners dropped to the surface below them,
+    # since a side hanging from a gripper hides its corner and f_R puts it
+    # up by the gripper (SafetyContext.far_corners_may_hang). On `hang`,
+    # seed 0: true-cloth rule breaks 53 -> 16 per 10 trials, successes
+    # 10 -> 7 (README). Rule breaks are always scored without it.
+    hidden_corners_hang: bool = True
 
     def __post_init__(self):
         if not 0 < self.tau_c < self.tau_f:

@@ -124,3 +124,16 @@ def test_demo_of_another_task():
             demo_dir=DEFAULT_DEMOS / "hang",
             progress=False,
         )
+
+
+def test_hardware_flags_name_the_problem(capsys):
+    from fabric_imitation.diagrams.cli import main
+
+    assert main(["imitate", "--scenario", "box", "--hardware"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "--hardware needs a scenario with Panda" in err
+    args = ["--scenario", "box_panda", "--hardware", "--record", "x.html"]
+    assert main(["imitate", *args]) == 2
+    assert "--record shows the simulated cloth" in capsys.readouterr().err
+    assert main(["imitate", "--scenario", "box", "--lcm-url", "memq://"]) == 2
+    assert "--lcm-url is for --hardware" in capsys.readouterr().err
