@@ -90,8 +90,14 @@ def _set_prepared(prepared: dict) -> None:
 
 def _prepare(job: dict):
     """PrepareImitation for the scenario of `job` (at its base pose)."""
-    from fabric_imitation.diagrams.imitation import DefaultDemoDir, PrepareImitation
+    import torch
+    from fabric_imitation.diagrams.imitation import (
+        DefaultDemoDir,
+        PrepareImitation,
+        TorchThreads,
+    )
 
+    torch.set_num_threads(TorchThreads())
     scenario = TrialScenario(job["scenario"], job["scenario_text"], None)
     return PrepareImitation(
         scenario,

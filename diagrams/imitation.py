@@ -699,7 +699,7 @@ def Imitate(
     diagram simulated alongside on the same `lcm` (tests: `MakeSimulatedLab`
     over memq); then the run is not paced to real time."""
     wall0 = time.perf_counter()
-    torch.set_num_threads(min(2, torch.get_num_threads()))
+    torch.set_num_threads(TorchThreads())
     if prepared is None:
         prepared = PrepareImitation(
             scenario,
@@ -759,3 +759,16 @@ def Imitate(
         }
     )
     return summary
+
+
+def TorchThreads() -> int:
+    """Torch threads for the controller and f_A's training: one.
+
+    Measured with `bench mpc` (box, N = 500, h = 5, this project's 2-core
+    machine): one sampling iteration takes about 56 ms on one thread and
+    75 ms on two (the tensors are too small for torch's intra-op threads to
+    pay), and with another process keeping one core busy two threads spin
+    against it (p95 337 ms) while one thread keeps its pace (p95 79 ms).
+    OMP_WAIT_POLICY=PASSIVE fixed the loaded case but made the idle one 14x
+    slower."""
+    return 1
