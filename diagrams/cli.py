@@ -396,6 +396,43 @@ def _bench_mpc(args) -> dict:
     )
 
 
+def _CheckArgs(args) -> None:
+    """What can be checked before any work starts (and before Drake or torch
+    are imported): the YAML of --scenario_text, counts that must be
+    positive, and that output files can be created where asked."""
+    text = getattr(args, "scenario_text", "")
+    if text and text.strip():
+        import yaml
+
+        try:
+            data = yaml.safe_load(text)
+        except yaml.YAMLError as e:
+            mark = getattr(e, "problem_mark", None)
+            where = (
+                f" at line {mark.line + 1}, column {mark.column + 1}" if mark else ""
+            )
+            problem = getattr(e, "problem", None) or "not valid YAML"
+            raise InputError(
+                f"--scenario_text: YAML syntax error{where}: {problem}"
+            ) from None
+        if not isinstance(data, dict):
+            raise InputError(
+                f"--scenario_text must be a YAML mapping such as "
+                f"'cloth: {{engine: fem}}', got {text!r}"
+            )
+    for name in ("trials", "workers", "transitions", "steps"):
+        value = getattr(args, name, None)
+        if value is not None and value < 1:
+            raise InputError(f"--{name} must be at least 1, got {value}")
+    for name in ("record", "video"):
+        path = getattr(args, name, None)
+        if path is not None and not Path(path).resolve().parent.is_dir():
+            raise InputError(
+                f"--{name} {path}: directory {Path(path).resolve().parent} "
+                "does not exist"
+            )
+
+
 def _build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="fabric-imitate",
@@ -453,6 +490,11 @@ def main(argv: list[str] | None = None) -> int:
     parser = _build_parser()
     args = parser.parse_args(argv)
     _, run = _COMMANDS[args._name]
+    try:
+        _CheckArgs(args)
+    except InputError as e:
+        print(f"fabric-imitate: error: {e}", file=sys.stderr)
+        return 2
     out = _stdout_for_summary_only()
     try:
         summary = run(args)

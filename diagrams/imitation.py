@@ -741,12 +741,22 @@ def Imitate(
         "object_pose": list(scenario.object.pose),
         **ScoreEpisode(scenario, prepared, run),
     }
+    # Writing files comes last and cannot lose the run's summary.
+    output_errors = []
     if video is not None:
         fps = 1.0 / scenario.motion.step_seconds
         last = [run.final.rgb] if run.final is not None else []
-        WriteVideo(video, run.frames + last, fps)
+        try:
+            WriteVideo(video, run.frames + last, fps)
+        except OSError as e:
+            output_errors.append(f"--video {video}: {e}")
     if record is not None:
-        SaveRecording(meshcat, record)
+        try:
+            SaveRecording(meshcat, record)
+        except OSError as e:
+            output_errors.append(f"--record {record}: {e}")
+    if output_errors:
+        summary["output_errors"] = output_errors
     summary.update(
         {
             "demo_frames": prepared.demo.num_frames,

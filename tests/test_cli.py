@@ -1,0 +1,68 @@
+"""The CLI checks what it can before any work starts: one-line errors, exit
+status 2, in well under the time the heavy imports take."""
+
+import subprocess
+import sys
+import time
+
+import pytest
+from fabric_imitation.diagrams.cli import main
+
+
+@pytest.mark.parametrize(
+    "argv, message",
+    [
+        (
+            ["imitate", "--scenario_text", "cloth: {engine: [vbd"],
+            "--scenario_text: YAML syntax error at line 1, column",
+        ),
+        (["imitate", "--scenario_text", "- 1\n- 2"], "must be a YAML mapping"),
+        (["evaluate", "--trials", "0", "--out", "x.jsonl"], "--trials must be at"),
+        (["evaluate", "--workers", "0", "--out", "x.jsonl"], "--workers must be at"),
+        (
+            ["imitate", "--record", "/no/such/dir/run.html"],
+            "--record /no/such/dir/run.html: directory /no/such/dir does not exist",
+        ),
+        (
+            [
+                "demo",
+                "record",
+                "--scenario",
+                "box",
+                "--out",
+                "d",
+                "--video",
+                "/no/v.mp4",
+            ],
+            "--video /no/v.mp4: directory /no does not exist",
+        ),
+    ],
+)
+def test_bad_arguments_are_one_line_errors(argv, message, capsys):
+    assert main(argv) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1, err
+    assert err.startswith("fabric-imitate: error: ") and message in err, err
+
+
+def test_argument_errors_come_before_heavy_imports():
+    t0 = time.perf_counter()
+    result = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "fabric_imitation.diagrams.cli",
+            "evaluate",
+            "--trials",
+            "0",
+            "--out",
+            "x.jsonl",
+        ],
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
+    seconds = time.perf_counter() - t0
+    assert result.returncode == 2
+    assert "--trials must be at least 1" in result.stderr
+    assert seconds < 2.0, seconds
