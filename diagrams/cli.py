@@ -27,22 +27,70 @@ def command(name: str):
     return wrap
 
 
-def _scenario_flags(parser: argparse.ArgumentParser, *, required=True) -> None:
+_SCENARIOS_FILE = (
+    Path(__file__).resolve().parent.parent / "scenarios" / "scenarios.yaml"
+)
+
+# Old flag spellings, still accepted with a note (one spelling: hyphens).
+_OLD_SPELLINGS = {
+    "--scenario_file": "--scenario-file",
+    "--scenario_text": "--scenario-text",
+}
+
+DESCRIPTIONS = {
+    "simulate": "Simulate a scenario's station (cloth held or the scripted task "
+    "motion), optionally recording it.",
+    "demo record": "Record a demo (observation-only video, depth and masks) of "
+    "the scripted task in simulation.",
+    "collect": "Collect prior transitions in the contact-free prior scene "
+    "(random safe actions), resumable.",
+    "train": "Train the priors f_R, f_D and f_I on a collected dataset.",
+    "imitate": "Imitate a demo with the priors at once, in simulation or on "
+    "real drivers (--hardware): the main job.",
+    "evaluate": "Run imitation trials with the object moved and turned, per "
+    "scenario and method; resumable; writes a summary and a plot.",
+    "bench sim": "Real-time factors of the cloth engines per phase.",
+    "bench collect": "Collection rate with 1 and 2 workers.",
+    "bench train": "Training throughput.",
+    "bench mpc": "MPC control-step latency, idle and with one core loaded.",
+}
+
+
+def _scenario_names() -> str:
+    import yaml
+
+    try:
+        with open(_SCENARIOS_FILE) as f:
+            return ", ".join(yaml.safe_load(f))
+    except (OSError, yaml.YAMLError, TypeError):
+        return "see scenarios/scenarios.yaml"
+
+
+def _scenario_flags(
+    parser: argparse.ArgumentParser, *, required=True, default: str | None = None
+) -> None:
     parser.add_argument(
         "--scenario",
         required=required,
-        help="named scenario (see scenarios/scenarios.yaml)",
+        default=default,
+        help=f"named scenario: {_scenario_names()}"
+        + (f" (default: {default})" if default else ""),
     )
     parser.add_argument(
+        "--scenario-file",
         "--scenario_file",
+        dest="scenario_file",
         type=Path,
         default=None,
-        help="YAML file of named scenarios (default: built-in)",
+        help="YAML file of named scenarios (default: the built-in one)",
     )
     parser.add_argument(
+        "--scenario-text",
         "--scenario_text",
+        dest="scenario_text",
         default="",
-        help="YAML mapping merged on top of the named scenario",
+        help="YAML mapping merged on top of the named scenario, e.g. "
+        "'cloth: {engine: fem}'",
     )
     parser.add_argument(
         "--object-pose",
@@ -188,8 +236,7 @@ def _train(args) -> dict:
 
 
 def _add_imitate(p):
-    _scenario_flags(p, required=False)
-    p.set_defaults(scenario="box")
+    _scenario_flags(p, required=False, default="box")
     p.add_argument(
         "--demo",
         type=Path,
@@ -275,12 +322,18 @@ def _add_evaluate(p):
         required=True,
         help="JSON-lines file of trials (resumed if it exists)",
     )
-    p.add_argument("--workers", type=int, default=1)
+    p.add_argument("--workers", type=int, default=1, help="parallel trials")
     p.add_argument("--seed", type=int, default=0, help="seed of the trial poses")
-    p.add_argument("--demo", type=Path, default=None)
-    p.add_argument("--priors", type=Path, default=None)
     p.add_argument(
+        "--demo", type=Path, default=None, help="demo directory (default: shipped)"
+    )
+    p.add_argument(
+        "--priors", type=Path, default=None, help="priors (default: shipped)"
+    )
+    p.add_argument(
+        "--scenario-text",
         "--scenario_text",
+        dest="scenario_text",
         default="",
         help='YAML overrides for every scenario, e.g. "cloth: {engine: fem}"',
     )
@@ -413,11 +466,11 @@ def _CheckArgs(args) -> None:
             )
             problem = getattr(e, "problem", None) or "not valid YAML"
             raise InputError(
-                f"--scenario_text: YAML syntax error{where}: {problem}"
+                f"--scenario-text: YAML syntax error{where}: {problem}"
             ) from None
         if not isinstance(data, dict):
             raise InputError(
-                f"--scenario_text must be a YAML mapping such as "
+                f"--scenario-text must be a YAML mapping such as "
                 f"'cloth: {{engine: fem}}', got {text!r}"
             )
     for name in ("trials", "workers", "transitions", "steps"):
@@ -442,15 +495,16 @@ def _build_parser() -> argparse.ArgumentParser:
     nested: dict[str, argparse._SubParsersAction] = {}
     for name, (add, _) in _COMMANDS.items():
         words = name.split()
+        text = DESCRIPTIONS.get(name)
         if len(words) == 1:
-            sub = groups.add_parser(words[0])
+            sub = groups.add_parser(words[0], help=text, description=text)
         else:
             if words[0] not in nested:
-                group = groups.add_parser(words[0])
+                group = groups.add_parser(words[0], help=f"{words[0]} subcommands")
                 nested[words[0]] = group.add_subparsers(
                     dest="subcommand", required=True
                 )
-            sub = nested[words[0]].add_parser(words[1])
+            sub = nested[words[0]].add_parser(words[1], help=text, description=text)
         sub.add_argument(
             "--json",
             action="store_true",
@@ -488,6 +542,14 @@ def main(argv: list[str] | None = None) -> int:
     # run that a machine without CUDA has no CUDA runtime; nothing here uses it.
     logging.getLogger("torch.utils.cpp_extension").setLevel(logging.ERROR)
     parser = _build_parser()
+    argv = sys.argv[1:] if argv is None else list(argv)
+    for word in argv:
+        old = word.split("=")[0]
+        if old in _OLD_SPELLINGS:
+            print(
+                f"fabric-imitate: note: {old} is now spelled {_OLD_SPELLINGS[old]}",
+                file=sys.stderr,
+            )
     args = parser.parse_args(argv)
     _, run = _COMMANDS[args._name]
     try:

@@ -47,7 +47,7 @@ def LoadScenario(
             where=f"scenario {scenario_name!r}",
         )
     if scenario_text.strip():
-        scenario = _load(data=scenario_text, defaults=scenario, where="--scenario_text")
+        scenario = _load(data=scenario_text, defaults=scenario, where="--scenario-text")
     scenario.validate()
     return scenario
 

@@ -13,10 +13,10 @@ from fabric_imitation.diagrams.cli import main
     "argv, message",
     [
         (
-            ["imitate", "--scenario_text", "cloth: {engine: [vbd"],
-            "--scenario_text: YAML syntax error at line 1, column",
+            ["imitate", "--scenario-text", "cloth: {engine: [vbd"],
+            "--scenario-text: YAML syntax error at line 1, column",
         ),
-        (["imitate", "--scenario_text", "- 1\n- 2"], "must be a YAML mapping"),
+        (["imitate", "--scenario-text", "- 1\n- 2"], "must be a YAML mapping"),
         (["evaluate", "--trials", "0", "--out", "x.jsonl"], "--trials must be at"),
         (["evaluate", "--workers", "0", "--out", "x.jsonl"], "--workers must be at"),
         (
@@ -66,3 +66,10 @@ def test_argument_errors_come_before_heavy_imports():
     assert result.returncode == 2
     assert "--trials must be at least 1" in result.stderr
     assert seconds < 2.0, seconds
+
+
+def test_old_flag_spellings_work_with_a_note(capsys):
+    assert main(["imitate", "--scenario_text", "[1]"]) == 2
+    err = capsys.readouterr().err
+    assert "note: --scenario_text is now spelled --scenario-text" in err
+    assert "must be a YAML mapping" in err
