@@ -510,6 +510,12 @@ def _build_parser() -> argparse.ArgumentParser:
             action="store_true",
             help="print the summary as one JSON object on stdout",
         )
+        sub.add_argument(
+            "-v",
+            "--verbose",
+            action="store_true",
+            help="also show solver and third-party chatter (filtered by default)",
+        )
         add(sub)
         sub.set_defaults(_name=name)
     return parser
@@ -523,16 +529,48 @@ def _print(summary: dict, as_json: bool, out) -> None:
         print(f"{key}: {json.dumps(value, default=str)}", file=out, flush=True)
 
 
-def _stdout_for_summary_only():
-    """Points file descriptor 1 at stderr for the rest of the process and
-    returns a stream on the real stdout: native libraries (the QP solver of
-    Drake's differential IK prints "Polishing not needed" on every solve)
-    would otherwise break the one-JSON-object stdout."""
+# Lines that tell a user nothing: the QP solver of Drake's differential IK
+# prints the first on every solve; the Panda URDF's tags Drake ignores; the
+# renderer skipping the arms' .dae visuals (README: known limitations).
+CHATTER = (
+    "Polishing not needed",
+    "found as a child of 'joint' is currently unsupported",
+    "RenderEngineVtk only supports Mesh specifications",
+    "Allocating contexts to support implicit context parallelism",
+)
+
+
+class _DropChatter(logging.Filter):
+    def filter(self, record: logging.LogRecord) -> bool:
+        message = record.getMessage()
+        return not any(c in message for c in CHATTER)
+
+
+def _stdout_for_summary_only(verbose: bool = False):
+    """Points file descriptor 1 at stderr for the rest of the process (through
+    a filter of CHATTER unless `verbose`) and returns a stream on the real
+    stdout: native libraries print there and would otherwise break the
+    one-JSON-object stdout."""
     import os
+    import threading
 
     sys.stdout.flush()
     saved = os.dup(1)
-    os.dup2(2, 1)
+    if verbose:
+        os.dup2(2, 1)
+    else:
+        read, write = os.pipe()
+        os.dup2(write, 1)
+        os.close(write)
+
+        def forward():
+            with os.fdopen(read, "r", errors="replace") as lines:
+                for line in lines:
+                    if not any(c in line for c in CHATTER):
+                        sys.stderr.write(line)
+
+        threading.Thread(target=forward, daemon=True).start()
+        logging.getLogger("drake").addFilter(_DropChatter())
     sys.stdout = sys.stderr
     return os.fdopen(saved, "w")
 
@@ -557,7 +595,7 @@ def main(argv: list[str] | None = None) -> int:
     except InputError as e:
         print(f"fabric-imitate: error: {e}", file=sys.stderr)
         return 2
-    out = _stdout_for_summary_only()
+    out = _stdout_for_summary_only(verbose=args.verbose)
     try:
         summary = run(args)
     except InputError as e:

@@ -73,3 +73,21 @@ def test_old_flag_spellings_work_with_a_note(capsys):
     err = capsys.readouterr().err
     assert "note: --scenario_text is now spelled --scenario-text" in err
     assert "must be a YAML mapping" in err
+
+
+@pytest.mark.parametrize("verbose", [False, True])
+def test_native_chatter_is_filtered_unless_verbose(verbose):
+    code = (
+        "import os, time\n"
+        "from fabric_imitation.diagrams.cli import _stdout_for_summary_only\n"
+        f"out = _stdout_for_summary_only(verbose={verbose})\n"
+        "os.write(1, b'Polishing not needed - no active set\\nsolver says hi\\n')\n"
+        "time.sleep(0.3)\n"
+        "out.write('{}\\n')\n"
+    )
+    result = subprocess.run(
+        [sys.executable, "-c", code], capture_output=True, text=True, timeout=60
+    )
+    assert result.stdout == "{}\n"  # stdout keeps only the summary
+    assert "solver says hi" in result.stderr
+    assert ("Polishing" in result.stderr) == verbose
