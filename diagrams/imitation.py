@@ -30,6 +30,7 @@ import torch
 from fabric_imitation.diagrams.recording import MakeRecordingMeshcat, SaveRecording
 from fabric_imitation.diagrams.simulation import CaptureFrame, Frame
 from fabric_imitation.diagrams.station import (
+    PEOPLE_CAMERA_SIZE,
     SIDES,
     AdvanceStationTo,
     CameraModelFromConfig,
@@ -39,7 +40,12 @@ from fabric_imitation.diagrams.station import (
     StationPorts,
 )
 from fabric_imitation.diagrams.success import TaskSuccess
-from fabric_imitation.learning.demo_io import Demo, LoadDemo, WriteVideo
+from fabric_imitation.learning.demo_io import (
+    VIDEO_MIN_SIZE,
+    Demo,
+    LoadDemo,
+    WriteVideo,
+)
 from fabric_imitation.learning.demo_learning import DemoModel, learn_from_demo
 from fabric_imitation.learning.errors import InputError
 from fabric_imitation.learning.metrics import chamfer_distance, cloud_from_depth
@@ -61,7 +67,7 @@ from fabric_imitation.systems.imitation import (
     PlanarPoseVector,
 )
 from fabric_imitation.systems.targets import GripperTargetIntegrator
-from fabric_imitation.systems.visualization import ClothFrameRecorder
+from fabric_imitation.systems.visualization import ClothFrameRecorder, VideoRecorder
 from pydrake.systems.analysis import Simulator
 from pydrake.systems.framework import Diagram, DiagramBuilder
 from pydrake.systems.primitives import LogVectorOutput, Multiplexer, VectorLogSink
@@ -188,6 +194,7 @@ class ImitationDiagram:
     start_time: float = 0.0  # [s] of the first control step
     scenario: Scenario | None = None
     lcm: object | None = None
+    video: VideoRecorder | None = None  # with video=True
 
 
 def MakeImitationDiagram(
@@ -199,6 +206,7 @@ def MakeImitationDiagram(
     seed: int | None = None,
     hardware: bool = False,
     lcm=None,
+    video: bool = False,
 ) -> ImitationDiagram:
     """Station + perception + demo reward + MPC + target integration, with a
     logger per signal an episode is scored on (period: the control step).
@@ -207,7 +215,10 @@ def MakeImitationDiagram(
     (`MakeClothStation(..., hardware=True)`); the first control step then
     waits one control period for the drivers' status and the camera's
     images, the gripper targets start from the measured hands at that step,
-    and nothing reads simulation ground truth."""
+    and nothing reads simulation ground truth.
+
+    With `video=True` a `VideoRecorder` keeps the control camera's images
+    and (simulation) an oblique people's camera's at VIDEO_FPS."""
     cfg = mpc_config or scenario.mpc
     priors, demo = prepared.priors, prepared.model
     dt = scenario.motion.step_seconds
@@ -220,7 +231,13 @@ def MakeImitationDiagram(
         lcm = lcm or DrakeLcm(scenario.grippers.panda.lcm_url)
     station = builder.AddNamedSystem(
         "station",
-        MakeClothStation(scenario, meshcat=meshcat, hardware=hardware, lcm=lcm),
+        MakeClothStation(
+            scenario,
+            meshcat=meshcat,
+            hardware=hardware,
+            lcm=lcm,
+            people_camera=video and not hardware,
+        ),
     )
     cam = scenario.camera
     estimator = builder.AddNamedSystem(
@@ -348,6 +365,16 @@ def MakeImitationDiagram(
         (controller, "termination"),
     ):
         builder.ExportOutput(system.GetOutputPort(port), port)
+    recorder = None
+    if video:
+        cameras = {StationPorts.RGB: (cam.width, cam.height)}
+        if not hardware:
+            cameras[StationPorts.PEOPLE_RGB] = (PEOPLE_CAMERA_SIZE, PEOPLE_CAMERA_SIZE)
+        recorder = builder.AddNamedSystem(
+            "video", VideoRecorder(cameras=cameras, fps=VIDEO_FPS)
+        )
+        for port in cameras:
+            builder.Connect(station.GetOutputPort(port), recorder.GetInputPort(port))
     diagram = builder.Build()
     diagram.set_name("imitation")
     return ImitationDiagram(
@@ -365,6 +392,7 @@ def MakeImitationDiagram(
         start_time=start,
         scenario=scenario,
         lcm=lcm,
+        video=recorder,
     )
 
 
@@ -376,7 +404,6 @@ class EpisodeRun:
     times: np.ndarray  # (K,)
     logs: dict[str, np.ndarray]  # name -> (K, size)
     final: Frame | None  # after the settle (simulation only)
-    frames: list[np.ndarray]  # RGB after each control step (when asked)
     first_action_s: float  # wall time from the start of the run to action 0
     wall_seconds: float
     error: str | None = None
@@ -388,7 +415,6 @@ def RunEpisode(
     imitation: ImitationDiagram,
     *,
     settle_seconds: float,
-    video: bool = False,
     progress: str | None = None,
     root: Diagram | None = None,
     realtime_rate: float = 0.0,
@@ -425,7 +451,7 @@ def RunEpisode(
     controller_context = imitation.controller.GetMyContextFromRoot(context)
     termination = imitation.controller.GetOutputPort("termination")
     dt = imitation.step_seconds
-    frames, first_action_s, error, bar = [], None, None, None
+    first_action_s, error, bar = None, None, None
     if progress:
         from tqdm import tqdm
 
@@ -442,8 +468,6 @@ def RunEpisode(
                     first_action_s = time.perf_counter() - t0
                 if termination.Eval(controller_context)[0] != RUNNING:
                     break
-                if video and k > 0:
-                    frames.append(CaptureFrame(station, station_context).rgb)
                 if bar is not None:
                     bar.update()
                 k += 1
@@ -474,7 +498,6 @@ def RunEpisode(
         times=times,
         logs=logs,
         final=final,
-        frames=frames,
         first_action_s=first_action_s or float("nan"),
         wall_seconds=time.perf_counter() - t0,
         error=error,
@@ -675,6 +698,30 @@ def ScoreEpisode(
     return summary
 
 
+VIDEO_FPS = 15.0  # frames per second of the videos for people
+
+
+def PeopleVideoPath(path: Path) -> Path:
+    """run.mp4 -> run.people.mp4: the oblique camera's video."""
+    return path.with_name(path.stem + ".people" + path.suffix)
+
+
+def WriteVideos(recorder: VideoRecorder, path: Path) -> list[str]:
+    """The recorder's control-camera frames to `path` (upscaled to at least
+    VIDEO_MIN_SIZE) and, when recorded, the people's camera's to
+    `PeopleVideoPath(path)`, H.264 at its frame rate. Returns the paths."""
+    written = []
+    for port, out in (
+        (StationPorts.RGB, path),
+        (StationPorts.PEOPLE_RGB, PeopleVideoPath(path)),
+    ):
+        frames = recorder.frames.get(port)
+        if frames:
+            WriteVideo(out, frames, recorder.fps, min_size=VIDEO_MIN_SIZE)
+            written.append(str(out))
+    return written
+
+
 def Imitate(
     *,
     scenario: Scenario,
@@ -718,6 +765,7 @@ def Imitate(
         seed=seed,
         hardware=hardware,
         lcm=lcm,
+        video=video is not None,
     )
     root = None
     if co_simulate is not None:
@@ -730,7 +778,6 @@ def Imitate(
     run = RunEpisode(
         imitation,
         settle_seconds=scenario.motion.settle_seconds,
-        video=video is not None,
         progress=f"imitate {scenario_name}" if progress else None,
         root=root,
         realtime_rate=1.0 if hardware and co_simulate is None else 0.0,
@@ -744,10 +791,8 @@ def Imitate(
     # Writing files comes last and cannot lose the run's summary.
     output_errors = []
     if video is not None:
-        fps = 1.0 / scenario.motion.step_seconds
-        last = [run.final.rgb] if run.final is not None else []
         try:
-            WriteVideo(video, run.frames + last, fps)
+            summary["videos"] = WriteVideos(imitation.video, Path(video))
         except OSError as e:
             output_errors.append(f"--video {video}: {e}")
     if record is not None:

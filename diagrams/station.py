@@ -13,6 +13,8 @@ Exported ports (names in `StationPorts`):
              released                           1 once the grasps are open
              cloth.positions                    simulation only: 3N vertex positions
              cloth.keypoints                    simulation only: 3M ordered keypoints
+             camera.people_rgb_image            with people_camera=True: an oblique
+                                                480 x 480 view for videos
 
 Opening the FEM grasps changes plant parameters, which no event may do: run
 a station with `AdvanceStationTo(simulator, station, t)` instead of
@@ -101,6 +103,7 @@ class StationPorts:
     OBJECT_POSE = "object.pose"
     CLOTH_POSITIONS = "cloth.positions"
     CLOTH_KEYPOINTS = "cloth.keypoints"
+    PEOPLE_RGB = "camera.people_rgb_image"  # only with people_camera=True
 
 
 @dc.dataclass
@@ -431,6 +434,7 @@ def MakeClothStation(
     hardware: bool = False,
     lcm=None,
     joint_commands: bool = False,
+    people_camera: bool = False,
 ) -> Diagram:
     """Builds the cloth station for `scenario` (see module docstring).
 
@@ -515,6 +519,8 @@ def MakeClothStation(
     builder.ExportOutput(latch.GetOutputPort("released"), StationPorts.RELEASED)
 
     X_WCamera, camera_info = _add_camera(builder, scenario, scene_graph)
+    if people_camera:
+        _add_people_camera(builder, scenario, scene_graph)
 
     object_pose = builder.AddNamedSystem(
         "object_pose", ConstantValueSource(AbstractValue.Make(X_WO))
@@ -637,6 +643,54 @@ def _add_camera(builder: DiagramBuilder, scenario: Scenario, scene_graph):
     builder.Connect(sensor.label_image_output_port(), mask.GetInputPort("label_image"))
     builder.ExportOutput(mask.GetOutputPort("mask"), StationPorts.MASK)
     return X_WCamera, color_camera.core().intrinsics()
+
+
+PEOPLE_CAMERA_SIZE = 480  # [px]
+# Where the people's camera looks from and at [m, world]: in front of the
+# table, to the right and above, so the cloth, the object and both grippers
+# (or arms) are in view, and their heights can be seen.
+PEOPLE_CAMERA_EYE = np.array([0.5, -0.55, 0.5])
+PEOPLE_CAMERA_TARGET = np.array([0.0, 0.08, 0.04])
+
+
+def LookAt(eye: np.ndarray, target: np.ndarray) -> RigidTransform:
+    """A camera pose (Drake's camera frame: +z forward, +x right, +y down)
+    at `eye` looking at `target`, upright with respect to world z."""
+    forward = (target - eye) / np.linalg.norm(target - eye)
+    right = np.cross(forward, [0.0, 0.0, 1.0])
+    right /= np.linalg.norm(right)
+    down = np.cross(forward, right)
+    return RigidTransform(RotationMatrix(np.stack([right, down, forward], 1)), eye)
+
+
+def _add_people_camera(builder: DiagramBuilder, scenario: Scenario, scene_graph):
+    """A second colour camera, oblique and larger, for videos people watch;
+    nothing in the diagram reads it. Exports ``camera.people_rgb_image``."""
+    from pydrake.common.schema import Transform
+    from pydrake.systems.sensors import CameraConfig
+
+    config = CameraConfig(
+        width=PEOPLE_CAMERA_SIZE,
+        height=PEOPLE_CAMERA_SIZE,
+        focal=CameraConfig.FovDegrees(y=50.0),
+        renderer_name=scenario.camera.renderer_name,
+        background=scenario.camera.background,
+        X_PB=Transform(LookAt(PEOPLE_CAMERA_EYE, PEOPLE_CAMERA_TARGET)),
+    )
+    color_camera, depth_camera = config.MakeCameras()
+    sensor = builder.AddNamedSystem(
+        "people_camera",
+        RgbdSensor(
+            parent_id=scene_graph.world_frame_id(),
+            X_PB=config.X_PB.GetDeterministicValue(),
+            color_camera=color_camera,
+            depth_camera=depth_camera,
+        ),
+    )
+    builder.Connect(
+        scene_graph.get_query_output_port(), sensor.query_object_input_port()
+    )
+    builder.ExportOutput(sensor.color_image_output_port(), StationPorts.PEOPLE_RGB)
 
 
 def CameraModelFromConfig(config):

@@ -106,19 +106,42 @@ def FileSha256(path: Path) -> str:
     return h.hexdigest()
 
 
-def WriteVideo(path: Path, rgb_frames: list[np.ndarray], fps: float) -> None:
-    """Writes (H, W, 3) uint8 RGB frames as mp4 (through a temporary file)."""
+VIDEO_MIN_SIZE = 480  # [px] videos for people are upscaled to at least this
+
+
+def WriteVideo(
+    path: Path, rgb_frames: list[np.ndarray], fps: float, *, min_size: int = 0
+) -> None:
+    """Writes (H, W, 3) uint8 RGB frames as H.264 mp4 (yuv420p: what browsers
+    play), through a temporary file. With `min_size`, frames smaller than it
+    are upscaled by the smallest integer factor that reaches it (nearest
+    neighbour: the camera's pixels stay visible as pixels)."""
+    import av
     import cv2
 
     path = Path(path)
     h, w = rgb_frames[0].shape[:2]
+    k = max(1, -(-min_size // min(h, w))) if min_size else 1
+    # yuv420p needs even sizes
+    W, H = (w * k + 1) // 2 * 2, (h * k + 1) // 2 * 2
     tmp = path.with_name(path.stem + f".partial-{os.getpid()}" + path.suffix)
-    writer = cv2.VideoWriter(str(tmp), cv2.VideoWriter_fourcc(*"mp4v"), fps, (w, h))
-    if not writer.isOpened():
-        raise OSError(f"cannot open a video writer for {path}")
-    for frame in rgb_frames:
-        writer.write(np.ascontiguousarray(frame[:, :, ::-1]))
-    writer.release()
+    try:
+        with av.open(str(tmp), mode="w", format="mp4") as container:
+            stream = container.add_stream("libx264", rate=int(round(fps)))
+            stream.width, stream.height = W, H
+            stream.pix_fmt = "yuv420p"
+            stream.options = {"crf": "20", "preset": "veryfast"}
+            for frame in rgb_frames:
+                image = np.ascontiguousarray(frame[:, :, :3])
+                if (w, h) != (W, H):
+                    image = cv2.resize(image, (W, H), interpolation=cv2.INTER_NEAREST)
+                for packet in stream.encode(av.VideoFrame.from_ndarray(image)):
+                    container.mux(packet)
+            for packet in stream.encode():
+                container.mux(packet)
+    except Exception:
+        tmp.unlink(missing_ok=True)
+        raise
     os.replace(tmp, path)
 
 

@@ -1,4 +1,5 @@
-"""Animates the FEM cloth in a meshcat recording.
+"""Animates the cloth in a meshcat recording; records camera frames for
+videos.
 
 Drake 1.58's meshcat recording keeps only the last shape of a deformable body.
 This system adds one triangle mesh per frame under ``/cloth_frames`` and
@@ -6,8 +7,10 @@ records each frame's visibility, so the saved HTML replays the cloth's motion.
 """
 
 import numpy as np
+from pydrake.common.value import AbstractValue
 from pydrake.geometry import Meshcat, Rgba
 from pydrake.systems.framework import EventStatus, LeafSystem
+from pydrake.systems.sensors import ImageRgba8U
 
 CLOTH_FRAMES_PATH = "/cloth_frames"
 CLOTH_RGBA = Rgba(0.85, 0.15, 0.15, 1.0)
@@ -54,4 +57,31 @@ class ClothFrameRecorder(LeafSystem):
             self._meshcat.SetProperty(path, "visible", False, 0.0)
             self._meshcat.SetProperty(FrameName(i - 1), "visible", False, t)
         self._meshcat.SetProperty(path, "visible", True, t)
+        return EventStatus.Succeeded()
+
+
+class VideoRecorder(LeafSystem):
+    """Keeps the colour images on its inputs every 1 / `fps` seconds, for
+    videos people watch (nothing reads them back into the diagram).
+
+    Input ports: one ImageRgba8U port per name in `cameras` (name -> (width,
+    height)). After a run, `frames[name]` holds (H, W, 3) uint8 RGB arrays.
+    One recorder serves one run (the frames live in the system).
+    """
+
+    def __init__(self, *, cameras: dict[str, tuple[int, int]], fps: float):
+        super().__init__()
+        self.fps = fps
+        self.frames = {name: [] for name in cameras}
+        self._ports = {
+            name: self.DeclareAbstractInputPort(
+                name, AbstractValue.Make(ImageRgba8U(w, h))
+            )
+            for name, (w, h) in cameras.items()
+        }
+        self.DeclarePeriodicPublishEvent(1.0 / fps, 0.0, self._publish)
+
+    def _publish(self, context) -> EventStatus:
+        for name, port in self._ports.items():
+            self.frames[name].append(np.array(port.Eval(context).data[:, :, :3]))
         return EventStatus.Succeeded()
