@@ -6,12 +6,11 @@ from pathlib import Path
 import numpy as np
 from fabric_imitation.diagrams.demos import ScriptedDemoPlan
 from fabric_imitation.diagrams.recording import MakeRecordingMeshcat, SaveRecording
-from fabric_imitation.diagrams.simulation import OpenLoopRun, RunResult
+from fabric_imitation.diagrams.simulation import OpenLoopRun, RunResult, WriteVideos
 from fabric_imitation.learning.demo_io import (
     CameraModel,
     ExistingDemoRequest,
     WriteDemo,
-    WriteVideo,
 )
 from fabric_imitation.learning.errors import InputError
 from fabric_imitation.scenarios.loader import DumpScenario
@@ -81,7 +80,11 @@ def RecordDemo(
     plan = ScriptedDemoPlan(scenario)
     meshcat = MakeRecordingMeshcat() if record else None
     run = OpenLoopRun(
-        scenario, actions=plan.actions, release_step=plan.release_step, meshcat=meshcat
+        scenario,
+        actions=plan.actions,
+        release_step=plan.release_step,
+        meshcat=meshcat,
+        video=video is not None,
     )
     result = run.run(progress=progress)
     if result.error is not None:
@@ -109,11 +112,7 @@ def RecordDemo(
         fps=1.0 / scenario.motion.step_seconds,
     )
     if video is not None:
-        WriteVideo(
-            video,
-            [f.rgb for f in frames] + [result.final.rgb],
-            1.0 / scenario.motion.step_seconds,
-        )
+        summary["videos"] = WriteVideos(run.video, Path(video))
     if record is not None:
         SaveRecording(meshcat, record)
     return {

@@ -28,9 +28,13 @@ from pathlib import Path
 import numpy as np
 import torch
 from fabric_imitation.diagrams.recording import MakeRecordingMeshcat, SaveRecording
-from fabric_imitation.diagrams.simulation import CaptureFrame, Frame
+from fabric_imitation.diagrams.simulation import (
+    AddVideoRecorder,
+    CaptureFrame,
+    Frame,
+    WriteVideos,
+)
 from fabric_imitation.diagrams.station import (
-    PEOPLE_CAMERA_SIZE,
     SIDES,
     AdvanceStationTo,
     CameraModelFromConfig,
@@ -40,12 +44,7 @@ from fabric_imitation.diagrams.station import (
     StationPorts,
 )
 from fabric_imitation.diagrams.success import TaskSuccess
-from fabric_imitation.learning.demo_io import (
-    VIDEO_MIN_SIZE,
-    Demo,
-    LoadDemo,
-    WriteVideo,
-)
+from fabric_imitation.learning.demo_io import Demo, LoadDemo
 from fabric_imitation.learning.demo_learning import DemoModel, learn_from_demo
 from fabric_imitation.learning.errors import InputError
 from fabric_imitation.learning.metrics import chamfer_distance, cloud_from_depth
@@ -365,16 +364,7 @@ def MakeImitationDiagram(
         (controller, "termination"),
     ):
         builder.ExportOutput(system.GetOutputPort(port), port)
-    recorder = None
-    if video:
-        cameras = {StationPorts.RGB: (cam.width, cam.height)}
-        if not hardware:
-            cameras[StationPorts.PEOPLE_RGB] = (PEOPLE_CAMERA_SIZE, PEOPLE_CAMERA_SIZE)
-        recorder = builder.AddNamedSystem(
-            "video", VideoRecorder(cameras=cameras, fps=VIDEO_FPS)
-        )
-        for port in cameras:
-            builder.Connect(station.GetOutputPort(port), recorder.GetInputPort(port))
+    recorder = AddVideoRecorder(builder, station, scenario) if video else None
     diagram = builder.Build()
     diagram.set_name("imitation")
     return ImitationDiagram(
@@ -696,30 +686,6 @@ def ScoreEpisode(
             final_chamfer=round(chamfer, 6),
         )
     return summary
-
-
-VIDEO_FPS = 15.0  # frames per second of the videos for people
-
-
-def PeopleVideoPath(path: Path) -> Path:
-    """run.mp4 -> run.people.mp4: the oblique camera's video."""
-    return path.with_name(path.stem + ".people" + path.suffix)
-
-
-def WriteVideos(recorder: VideoRecorder, path: Path) -> list[str]:
-    """The recorder's control-camera frames to `path` (upscaled to at least
-    VIDEO_MIN_SIZE) and, when recorded, the people's camera's to
-    `PeopleVideoPath(path)`, H.264 at its frame rate. Returns the paths."""
-    written = []
-    for port, out in (
-        (StationPorts.RGB, path),
-        (StationPorts.PEOPLE_RGB, PeopleVideoPath(path)),
-    ):
-        frames = recorder.frames.get(port)
-        if frames:
-            WriteVideo(out, frames, recorder.fps, min_size=VIDEO_MIN_SIZE)
-            written.append(str(out))
-    return written
 
 
 def Imitate(

@@ -6,8 +6,7 @@ import numpy as np
 from fabric_imitation.diagrams.demo_record import RunSummary
 from fabric_imitation.diagrams.demos import ScriptedDemoPlan
 from fabric_imitation.diagrams.recording import MakeRecordingMeshcat, SaveRecording
-from fabric_imitation.diagrams.simulation import OpenLoopRun
-from fabric_imitation.learning.demo_io import WriteVideo
+from fabric_imitation.diagrams.simulation import OpenLoopRun, WriteVideos
 from fabric_imitation.learning.errors import InputError
 from fabric_imitation.scenarios.schema import Scenario
 
@@ -36,18 +35,18 @@ def Simulate(
         raise InputError(f"unknown motion {motion!r}; use hold or scripted")
     meshcat = MakeRecordingMeshcat() if record else None
     run = OpenLoopRun(
-        scenario, actions=actions, release_step=release_step, meshcat=meshcat
+        scenario,
+        actions=actions,
+        release_step=release_step,
+        meshcat=meshcat,
+        video=video is not None,
     )
-    result = run.run(capture_frames=video is not None, progress=progress)
-    if video is not None:
-        WriteVideo(
-            video,
-            [f.rgb for f in result.frames] + [result.final.rgb],
-            1.0 / scenario.motion.step_seconds,
-        )
+    result = run.run(capture_frames=False, progress=progress)
+    videos = WriteVideos(run.video, Path(video)) if video is not None else None
     if record is not None:
         SaveRecording(meshcat, record)
     return {
+        **({"videos": videos} if videos else {}),
         "scenario": scenario_name,
         "motion": motion,
         "cloth_vertices": len(run.station.handles.mesh.vertices),

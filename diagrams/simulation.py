@@ -6,10 +6,12 @@ import dataclasses as dc
 import sys
 import time
 from collections.abc import Callable
+from pathlib import Path
 
 import numpy as np
 from fabric_imitation.diagrams.cloth_mesh import TopTriangles
 from fabric_imitation.diagrams.station import (
+    PEOPLE_CAMERA_SIZE,
     SIDES,
     AdvanceStationTo,
     GraspCorners,
@@ -18,9 +20,10 @@ from fabric_imitation.diagrams.station import (
     StationPorts,
 )
 from fabric_imitation.diagrams.success import SuccessReport, TaskSuccess
+from fabric_imitation.learning.demo_io import VIDEO_MIN_SIZE, WriteVideo
 from fabric_imitation.scenarios.schema import Scenario
 from fabric_imitation.systems.targets import ActionPlayer, GripperTargetIntegrator
-from fabric_imitation.systems.visualization import ClothFrameRecorder
+from fabric_imitation.systems.visualization import ClothFrameRecorder, VideoRecorder
 from pydrake.geometry import Meshcat
 from pydrake.systems.analysis import Simulator
 from pydrake.systems.framework import Diagram, DiagramBuilder
@@ -60,6 +63,45 @@ def CaptureFrame(station: Diagram, station_context) -> Frame:
     )
 
 
+VIDEO_FPS = 15.0  # frames per second of the videos for people
+
+
+def AddVideoRecorder(builder, station, scenario: Scenario) -> VideoRecorder:
+    """A VideoRecorder on the station's control camera and, when the station
+    has one, its people's camera, at VIDEO_FPS."""
+    cam = scenario.camera
+    cameras = {StationPorts.RGB: (cam.width, cam.height)}
+    if station.HasOutputPort(StationPorts.PEOPLE_RGB):
+        cameras[StationPorts.PEOPLE_RGB] = (PEOPLE_CAMERA_SIZE, PEOPLE_CAMERA_SIZE)
+    recorder = builder.AddNamedSystem(
+        "video", VideoRecorder(cameras=cameras, fps=VIDEO_FPS)
+    )
+    for port in cameras:
+        builder.Connect(station.GetOutputPort(port), recorder.GetInputPort(port))
+    return recorder
+
+
+def PeopleVideoPath(path: Path) -> Path:
+    """run.mp4 -> run.people.mp4: the oblique camera's video."""
+    return path.with_name(path.stem + ".people" + path.suffix)
+
+
+def WriteVideos(recorder: VideoRecorder, path: Path) -> list[str]:
+    """The recorder's control-camera frames to `path` (upscaled to at least
+    VIDEO_MIN_SIZE) and, when recorded, the people's camera's to
+    `PeopleVideoPath(path)`, H.264 at its frame rate. Returns the paths."""
+    written = []
+    for port, out in (
+        (StationPorts.RGB, path),
+        (StationPorts.PEOPLE_RGB, PeopleVideoPath(path)),
+    ):
+        frames = recorder.frames.get(port)
+        if frames:
+            WriteVideo(out, frames, recorder.fps, min_size=VIDEO_MIN_SIZE)
+            written.append(str(out))
+    return written
+
+
 @dc.dataclass
 class RunResult:
     scenario: Scenario
@@ -95,6 +137,7 @@ class OpenLoopRun:
         actions: np.ndarray,
         release_step: int | None,
         meshcat: Meshcat | None = None,
+        video: bool = False,
     ):
         self.scenario = scenario
         self.actions = np.asarray(actions, dtype=float).reshape(-1, 6)
@@ -102,7 +145,8 @@ class OpenLoopRun:
         self.step_seconds = scenario.motion.step_seconds
         builder = DiagramBuilder()
         station = builder.AddNamedSystem(
-            "station", MakeClothStation(scenario, meshcat=meshcat)
+            "station",
+            MakeClothStation(scenario, meshcat=meshcat, people_camera=video),
         )
         integrator = builder.AddNamedSystem(
             "targets", GripperTargetIntegrator(step_seconds=self.step_seconds)
@@ -127,6 +171,7 @@ class OpenLoopRun:
                 station.GetInputPort(StationPorts.ee_target(side)),
             )
         self.meshcat = meshcat
+        self.video = AddVideoRecorder(builder, station, scenario) if video else None
         if meshcat is not None:
             self._add_recording(builder, station, meshcat)
         self.diagram = builder.Build()
