@@ -605,6 +605,7 @@ def AddPandaGrippers(
         # The clip stays world-aligned at the corner while the hand points down.
         X_TcpClip[side] = RigidTransform(orientations[side].inverse(), np.zeros(3))
     FilterArmCollisions(plant, scene_graph, instances)
+    ShowArmsToCameras(plant, config, instances)
     return PandaGrippers(
         scenario=scenario,
         plant=plant,
@@ -616,6 +617,78 @@ def AddPandaGrippers(
         q0=q0,
         orientations=orientations,
     )
+
+
+ARM_LABEL = 3  # render label of the arms in the camera's label image
+ARM_RGBA = (0.82, 0.82, 0.85, 1.0)
+# Link -> (collision mesh of the package, yaw of its visual origin [rad]).
+_LINK_MESHES = {
+    **{f"panda_link{i}": (f"link{i}.stl", 0.0) for i in range(8)},
+    "panda_hand": ("hand.stl", 0.0),
+    "panda_leftfinger": ("finger.stl", 0.0),
+    "panda_rightfinger": ("finger.stl", math.pi),
+}
+
+
+def StlToObj(data: bytes) -> str:
+    """A binary STL's triangles as Wavefront OBJ text (shared vertices, one
+    normal per face: the renderer needs normals)."""
+    (count,) = np.frombuffer(data[80:84], np.uint32)
+    records = np.frombuffer(
+        data[84 : 84 + 50 * int(count)],
+        dtype=np.dtype([("n", "<f4", 3), ("v", "<f4", (3, 3)), ("a", "<u2")]),
+    )
+    corners = records["v"].astype(float)
+    normals = np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
+    normals /= np.maximum(np.linalg.norm(normals, axis=1, keepdims=True), 1e-12)
+    points, faces = np.unique(corners.reshape(-1, 3), axis=0, return_inverse=True)
+    faces = faces.reshape(-1, 3) + 1
+    lines = [f"v {x:.6f} {y:.6f} {z:.6f}" for x, y, z in points]
+    lines += [f"vn {x:.6f} {y:.6f} {z:.6f}" for x, y, z in normals]
+    lines += [
+        f"f {a}//{k} {b}//{k} {c}//{k}" for k, (a, b, c) in enumerate(faces, start=1)
+    ]
+    return "\n".join(lines) + "\n"
+
+
+def ShowArmsToCameras(plant, config: PandaConfig, instances) -> None:
+    """Gives each arm link a perception-only copy of its collision mesh (the
+    package's .stl, converted to OBJ in memory), so the cameras render the
+    arms: the model's visual meshes are .dae, which Drake's VTK renderer
+    skips. The top-down camera then sees the arms cover the cloth as a real
+    camera would (label ARM_LABEL: not cloth in the fabric mask)."""
+    from pydrake.common import MemoryFile
+    from pydrake.geometry import (
+        GeometryInstance,
+        InMemoryMesh,
+        Mesh,
+        PerceptionProperties,
+        RenderLabel,
+        Rgba,
+    )
+
+    folder = PackagePath(config.package) / "robots/panda_description/meshes/collision"
+    objs = {}
+    for link, (stl, yaw) in _LINK_MESHES.items():
+        if stl not in objs:
+            path = folder / stl
+            if not path.is_file():
+                return  # another robot package layout: the arms stay unseen
+            objs[stl] = StlToObj(path.read_bytes())
+        for side, instance in instances.items():
+            if not plant.HasBodyNamed(link, instance):
+                continue
+            shape = Mesh(InMemoryMesh(mesh_file=MemoryFile(objs[stl], ".obj", stl)))
+            geometry = GeometryInstance(
+                RigidTransform(RotationMatrix.MakeZRotation(yaw), np.zeros(3)),
+                shape,
+                f"{side}_{link}_seen",
+            )
+            properties = PerceptionProperties()
+            properties.AddProperty("label", "id", RenderLabel(ARM_LABEL))
+            properties.AddProperty("phong", "diffuse", Rgba(*ARM_RGBA))
+            geometry.set_perception_properties(properties)
+            plant.RegisterVisualGeometry(plant.GetBodyByName(link, instance), geometry)
 
 
 def FilterArmCollisions(plant, scene_graph, instances) -> None:

@@ -649,8 +649,8 @@ PEOPLE_CAMERA_SIZE = 480  # [px]
 # Where the people's camera looks from and at [m, world]: in front of the
 # table, to the right and above, so the cloth, the object and both grippers
 # (or arms) are in view, and their heights can be seen.
-PEOPLE_CAMERA_EYE = np.array([0.5, -0.55, 0.5])
-PEOPLE_CAMERA_TARGET = np.array([0.0, 0.08, 0.04])
+PEOPLE_CAMERA_EYE = np.array([0.55, 0.75, 0.6])
+PEOPLE_CAMERA_TARGET = np.array([0.0, 0.0, 0.05])
 
 
 def LookAt(eye: np.ndarray, target: np.ndarray) -> RigidTransform:
