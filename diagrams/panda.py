@@ -606,6 +606,7 @@ def AddPandaGrippers(
         X_TcpClip[side] = RigidTransform(orientations[side].inverse(), np.zeros(3))
     FilterArmCollisions(plant, scene_graph, instances)
     ShowArmsToCameras(plant, config, instances)
+    AddMounts(plant, config)
     return PandaGrippers(
         scenario=scenario,
         plant=plant,
@@ -628,6 +629,36 @@ _LINK_MESHES = {
     "panda_leftfinger": ("finger.stl", 0.0),
     "panda_rightfinger": ("finger.stl", math.pi),
 }
+
+
+MOUNT_SIZE = (0.24, 0.24, 0.75)  # [m] pedestal under each Panda base, to the floor
+
+
+def AddMounts(plant, config: PandaConfig) -> None:
+    """A pedestal under each arm's base, from the floor to the table top (seen
+    by meshcat and the cameras; it touches nothing)."""
+    from pydrake.geometry import (
+        Box,
+        GeometryInstance,
+        IllustrationProperties,
+        PerceptionProperties,
+        RenderLabel,
+        Rgba,
+    )
+
+    color = Rgba(0.3, 0.3, 0.32, 1.0)
+    for side in SIDES:
+        base = getattr(config, side).base
+        X_WM = RigidTransform([base[0], base[1], -MOUNT_SIZE[2] / 2])
+        geometry = GeometryInstance(X_WM, Box(*MOUNT_SIZE), f"{side}_panda_mount")
+        illustration = IllustrationProperties()
+        illustration.AddProperty("phong", "diffuse", color)
+        geometry.set_illustration_properties(illustration)
+        perception = PerceptionProperties()
+        perception.AddProperty("label", "id", RenderLabel(ARM_LABEL))
+        perception.AddProperty("phong", "diffuse", color)
+        geometry.set_perception_properties(perception)
+        plant.RegisterVisualGeometry(plant.world_body(), geometry)
 
 
 def StlToObj(data: bytes) -> str:

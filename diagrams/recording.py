@@ -3,6 +3,7 @@
 import os
 from pathlib import Path
 
+import numpy as np
 from pydrake.geometry import Meshcat
 
 # Drake's own drawing of the deformable cloth (MeshcatVisualizer, prefix
@@ -14,6 +15,11 @@ DRAKE_CLOTH_PATH = "/drake/scene/deformable_geometries"
 def MakeRecordingMeshcat() -> Meshcat:
     """A meshcat that is recording from now on."""
     meshcat = Meshcat()
+    # Opens framed on the table, from the front right and above.
+    meshcat.SetCameraPose(
+        camera_in_world=np.array([0.9, -1.0, 0.8]),
+        target_in_world=np.array([0.0, 0.0, 0.05]),
+    )
     meshcat.StartRecording(
         frames_per_second=32.0, set_visualizations_while_recording=False
     )

@@ -148,7 +148,9 @@ class MpcController(LeafSystem):
     """Sampling MPC following the demo (learning/mpc.py), once per control step.
 
     Ends the episode (release, zero action) when the termination classifier
-    fires, when no feasible action exists, or at the step cap. The rules and
+    fires, when no feasible action exists, or at the step cap; in the
+    `retreat_steps` control steps after that it lifts both grippers by
+    `retreat_step` metres each, clear of the released cloth. The rules and
     the action's frame use the object pose read from ``object_pose`` at each
     step (on hardware it can come from a marker).
 
@@ -170,9 +172,12 @@ class MpcController(LeafSystem):
         offset: float,
         step_cap: int,
         seed: int = 0,
+        retreat_steps: int = 3,
+        retreat_step: float = 0.03,
     ):
         super().__init__()
         self._mpc = mpc
+        self._retreat = (retreat_steps, retreat_step)
         self._m = num_keypoints
         self._cap = step_cap
         self._seed = seed
@@ -190,6 +195,7 @@ class MpcController(LeafSystem):
                 ("progress", 1),
                 ("solve_ms", 1),
                 ("iterations", 1),
+                ("retreated", 1),  # lifting steps taken after the release
             )
         }
         self.DeclarePeriodicDiscreteUpdateEvent(period, offset, self._update)
@@ -206,7 +212,10 @@ class MpcController(LeafSystem):
             )
 
         if self._get(context, "termination")[0] != RUNNING:
-            put("action", np.zeros(6))
+            done = int(self._get(context, "retreated")[0])
+            steps, lift = self._retreat
+            put("action", [0, 0, lift, 0, 0, lift] if done < steps else np.zeros(6))
+            put("retreated", min(done + 1, steps))
             return EventStatus.Succeeded()
         S = torch.as_tensor(
             self._kp.Eval(context).reshape(self._m, 3), dtype=torch.float32

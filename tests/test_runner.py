@@ -81,7 +81,6 @@ def crafted_run(pose, actions_O, true_after_shift):
         times=DT * np.arange(rows),
         logs=logs,
         final=None,
-        frames=[],
         first_action_s=0.0,
         wall_seconds=0.0,
     )
@@ -211,11 +210,20 @@ def test_mpc_controller_applies_object_frame_actions_in_the_turned_world():
     assert dut.GetOutputPort("solve_ms").Eval(context)[0] >= 0
 
 
-def test_mpc_controller_stops_and_releases_when_the_classifier_fires():
+def test_mpc_controller_stops_releases_and_lifts_the_grippers_clear():
     dut, context = _controller(FixedMpc(np.full(6, 0.01), done=True), 0.3)
     assert dut.GetOutputPort("termination").Eval(context)[0] == TERMINATED_CLASSIFIER
     assert dut.GetOutputPort("release").Eval(context)[0] == 1.0
     np.testing.assert_array_equal(dut.GetOutputPort("action").Eval(context), 0)
+    # Then three steps up by 3 cm each (world z), then still; no step counted.
+    simulator = Simulator(dut, context)
+    lifts = []
+    for k in range(1, 6):
+        simulator.AdvanceTo((k + 0.5) * DT)
+        lifts.append(dut.GetOutputPort("action").Eval(context).copy())
+    np.testing.assert_allclose(lifts[:3], [[0, 0, 0.03, 0, 0, 0.03]] * 3)
+    np.testing.assert_array_equal(lifts[3:], 0)
+    assert dut.GetOutputPort("steps").Eval(context)[0] == 0
 
 
 def test_target_integrator_starts_at_the_measured_grippers_and_ramps():
