@@ -57,7 +57,45 @@ def _load(*, where: str, **kwargs) -> Scenario:
         return yaml_load_typed(schema=Scenario, **kwargs)
     except (RuntimeError, ValueError, TypeError) as e:
         message = " ".join(str(e).split())
+        field = _BadField(kwargs.get("defaults"), kwargs.get("data"))
+        if field:
+            message = f"{field}: {message}"
         raise InputError(f"{where}: {message}") from None
+
+
+def _BadField(defaults, text: str | None) -> str | None:
+    """The dotted name of the first value in the YAML `text` whose type does
+    not match the default it replaces (a number where a list is, a word
+    where a number is), for errors that name no field."""
+    import yaml
+
+    try:
+        data = yaml.safe_load(text) if text else None
+    except yaml.YAMLError:
+        return None
+
+    def walk(obj, value, path):
+        if isinstance(value, dict):
+            for key, item in value.items():
+                if not hasattr(obj, str(key)):
+                    return None
+                found = walk(getattr(obj, str(key)), item, f"{path}{key}.")
+                if found:
+                    return found
+            return None
+        name = path[:-1]
+        if isinstance(obj, bool):
+            return None if isinstance(value, bool) else name
+        if isinstance(obj, int | float):
+            ok = isinstance(value, int | float) and not isinstance(value, bool)
+            return None if ok else name
+        if isinstance(obj, str):
+            return None if isinstance(value, str) else name
+        if isinstance(obj, list):
+            return None if isinstance(value, list) else name
+        return None
+
+    return walk(defaults, data, "") if isinstance(data, dict) else None
 
 
 def DumpScenario(scenario: Scenario) -> str:

@@ -91,3 +91,16 @@ def test_native_chatter_is_filtered_unless_verbose(verbose):
     assert result.stdout == "{}\n"  # stdout keeps only the summary
     assert "solver says hi" in result.stderr
     assert ("Polishing" in result.stderr) == verbose
+
+
+@pytest.mark.parametrize(
+    "text, field",
+    [
+        ("camera: {width: abc}", "camera.width"),
+        ("cloth: {vbd: {resolution: 16}}", "cloth.vbd.resolution"),
+    ],
+)
+def test_a_value_of_the_wrong_type_names_its_field(text, field, capsys):
+    assert main(["imitate", "--scenario-text", text]) == 2
+    err = capsys.readouterr().err
+    assert f"--scenario-text: {field}: " in err and err.count("\n") == 1, err
