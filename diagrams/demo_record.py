@@ -5,8 +5,8 @@ from pathlib import Path
 
 import numpy as np
 from fabric_imitation.diagrams.demos import ScriptedDemoPlan
-from fabric_imitation.diagrams.recording import MakeRecordingMeshcat, SaveRecording
-from fabric_imitation.diagrams.simulation import OpenLoopRun, RunResult, WriteVideos
+from fabric_imitation.diagrams.recording import MakeRecordingMeshcat
+from fabric_imitation.diagrams.simulation import OpenLoopRun, RunResult, WriteOutputs
 from fabric_imitation.learning.demo_io import (
     CameraModel,
     ExistingDemoRequest,
@@ -111,10 +111,9 @@ def RecordDemo(
         summary=summary,
         fps=1.0 / scenario.motion.step_seconds,
     )
-    if video is not None:
-        summary["videos"] = WriteVideos(run.video, Path(video))
-    if record is not None:
-        SaveRecording(meshcat, record)
+    WriteOutputs(
+        summary, video=video, recorder=run.video, record=record, meshcat=meshcat
+    )
     return {
         **request,
         "num_frames": len(frames),

@@ -27,12 +27,12 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from fabric_imitation.diagrams.recording import MakeRecordingMeshcat, SaveRecording
+from fabric_imitation.diagrams.recording import MakeRecordingMeshcat
 from fabric_imitation.diagrams.simulation import (
     AddVideoRecorder,
     CaptureFrame,
     Frame,
-    WriteVideos,
+    WriteOutputs,
 )
 from fabric_imitation.diagrams.station import (
     SIDES,
@@ -755,19 +755,9 @@ def Imitate(
         **ScoreEpisode(scenario, prepared, run),
     }
     # Writing files comes last and cannot lose the run's summary.
-    output_errors = []
-    if video is not None:
-        try:
-            summary["videos"] = WriteVideos(imitation.video, Path(video))
-        except OSError as e:
-            output_errors.append(f"--video {video}: {e}")
-    if record is not None:
-        try:
-            SaveRecording(meshcat, record)
-        except OSError as e:
-            output_errors.append(f"--record {record}: {e}")
-    if output_errors:
-        summary["output_errors"] = output_errors
+    WriteOutputs(
+        summary, video=video, recorder=imitation.video, record=record, meshcat=meshcat
+    )
     summary.update(
         {
             "demo_frames": prepared.demo.num_frames,

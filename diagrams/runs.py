@@ -5,8 +5,8 @@ from pathlib import Path
 import numpy as np
 from fabric_imitation.diagrams.demo_record import RunSummary
 from fabric_imitation.diagrams.demos import ScriptedDemoPlan
-from fabric_imitation.diagrams.recording import MakeRecordingMeshcat, SaveRecording
-from fabric_imitation.diagrams.simulation import OpenLoopRun, WriteVideos
+from fabric_imitation.diagrams.recording import MakeRecordingMeshcat
+from fabric_imitation.diagrams.simulation import OpenLoopRun, WriteOutputs
 from fabric_imitation.learning.errors import InputError
 from fabric_imitation.scenarios.schema import Scenario
 
@@ -42,11 +42,7 @@ def Simulate(
         video=video is not None,
     )
     result = run.run(capture_frames=False, progress=progress)
-    videos = WriteVideos(run.video, Path(video)) if video is not None else None
-    if record is not None:
-        SaveRecording(meshcat, record)
-    return {
-        **({"videos": videos} if videos else {}),
+    summary = {
         "scenario": scenario_name,
         "motion": motion,
         "cloth_vertices": len(run.station.handles.mesh.vertices),
@@ -54,3 +50,6 @@ def Simulate(
         "contact_approximation": scenario.plant_config.discrete_contact_approximation,
         **RunSummary(result),
     }
+    return WriteOutputs(
+        summary, video=video, recorder=run.video, record=record, meshcat=meshcat
+    )

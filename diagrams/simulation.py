@@ -81,6 +81,30 @@ def AddVideoRecorder(builder, station, scenario: Scenario) -> VideoRecorder:
     return recorder
 
 
+def WriteOutputs(
+    summary: dict, *, video=None, recorder=None, record=None, meshcat=None
+):
+    """Writes the run's videos and meshcat recording after the run, last; a
+    file that cannot be written goes into `summary["output_errors"]`
+    instead of losing the summary. Returns `summary`."""
+    from fabric_imitation.diagrams.recording import SaveRecording
+
+    errors = []
+    if video is not None and recorder is not None:
+        try:
+            summary["videos"] = WriteVideos(recorder, Path(video))
+        except OSError as e:
+            errors.append(f"--video {video}: {e}")
+    if record is not None and meshcat is not None:
+        try:
+            SaveRecording(meshcat, record)
+        except OSError as e:
+            errors.append(f"--record {record}: {e}")
+    if errors:
+        summary["output_errors"] = errors
+    return summary
+
+
 def PeopleVideoPath(path: Path) -> Path:
     """run.mp4 -> run.people.mp4: the oblique camera's video."""
     return path.with_name(path.stem + ".people" + path.suffix)

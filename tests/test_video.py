@@ -48,3 +48,17 @@ def test_simulate_writes_both_videos_at_15_fps(tmp_path):
         assert (codec, pix, fps) == ("h264", "yuv420p", 15.0)
         assert min(w, h) >= 480
         assert n >= 6  # 0.4 s at 15 per second
+
+
+def test_a_video_that_cannot_be_written_keeps_the_summary(tmp_path):
+    scenario = LoadScenario(scenario_name="box", scenario_text=SmallCloth("vbd"))
+    out = tmp_path / "gone" / "run.mp4"  # its folder does not exist
+    summary = Simulate(
+        scenario=scenario,
+        scenario_name="box",
+        duration=0.2,
+        video=out,
+        progress=False,
+    )
+    assert summary["success"] is not None and "videos" not in summary
+    assert summary["output_errors"][0].startswith(f"--video {out}: ")
