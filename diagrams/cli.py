@@ -315,6 +315,13 @@ def _add_evaluate(p):
         default=["ours"],
         help="ours, no_mpc, no_prior, no_cost, scripted",
     )
+    p.add_argument(
+        "--protocol",
+        default="transformation",
+        help="object poses: translation (moved <= 10 cm), transformation "
+        "(moved <= 10 cm, turned <= 45 deg; default), wide (moved <= 15 cm, "
+        "turned <= 90 deg)",
+    )
     p.add_argument("--trials", type=int, default=10, help="trials per scenario")
     p.add_argument(
         "--out",
@@ -353,6 +360,7 @@ def _evaluate(args) -> dict:
         demo=args.demo,
         priors=args.priors,
         scenario_text=args.scenario_text,
+        protocol=args.protocol,
     )
 
 
@@ -477,6 +485,14 @@ def _CheckArgs(args) -> None:
         value = getattr(args, name, None)
         if value is not None and value < 1:
             raise InputError(f"--{name} must be at least 1, got {value}")
+    protocol = getattr(args, "protocol", None)
+    if protocol is not None:
+        from fabric_imitation.diagrams.evaluate import PROTOCOLS
+
+        if protocol not in PROTOCOLS:
+            raise InputError(
+                f"unknown protocol {protocol!r}; known: {', '.join(PROTOCOLS)}"
+            )
     for name in ("record", "video"):
         path = getattr(args, name, None)
         if path is not None and not Path(path).resolve().parent.is_dir():

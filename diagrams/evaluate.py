@@ -16,8 +16,6 @@ from pathlib import Path
 
 import numpy as np
 from fabric_imitation.learning.errors import InputError
-from fabric_imitation.learning.safety import RULES
-from fabric_imitation.scenarios.loader import LoadScenario
 
 METHODS = {
     "ours": {},
@@ -28,10 +26,40 @@ METHODS = {
 }
 
 
+# Protocol -> (largest move of the object [m], largest turn [deg]) away
+# from the demo's pose: the paper's Translation and Transformation, and
+# "wide", its "arbitrarily within the workspace".
+PROTOCOLS = {
+    "translation": (0.10, 0.0),
+    "transformation": (0.10, 45.0),
+    "wide": (0.15, 90.0),
+}
+
+
+def ProtocolPoses(
+    scenario_name: str, protocol: str, *, trials: int, seed: int, scenario_text=""
+) -> list[list[float]]:
+    """The seeded pose list of `protocol` (see PROTOCOLS)."""
+    if protocol not in PROTOCOLS:
+        raise InputError(
+            f"unknown protocol {protocol!r}; known: {', '.join(PROTOCOLS)}"
+        )
+    shift, yaw = PROTOCOLS[protocol]
+    return TrialPoses(
+        scenario_name,
+        trials=trials,
+        seed=seed,
+        max_shift=shift,
+        max_yaw_deg=yaw,
+        scenario_text=scenario_text,
+    )
+
+
 def TrialScenario(name: str, text: str, pose: list[float] | None):
     """Scenario `name` with the YAML overrides `text` and, if given, the
     trial's object pose on top."""
     import yaml
+    from fabric_imitation.scenarios.loader import LoadScenario
 
     overrides = yaml.safe_load(text) if text.strip() else {}
     if not isinstance(overrides, dict):
@@ -61,7 +89,7 @@ def TrialPoses(
     while len(poses) < trials:
         r = max_shift * math.sqrt(rng.uniform())
         a = rng.uniform(0, 2 * math.pi)
-        yaw = rng.uniform(-max_yaw_deg, max_yaw_deg)
+        yaw = rng.uniform(-max_yaw_deg, max_yaw_deg) if max_yaw_deg > 0 else 0.0
         p = base.object.pose
         pose = [
             round(p[0] + r * math.cos(a), 4),
@@ -140,6 +168,8 @@ def _run_trial(job: dict) -> dict:
 
 
 def _aggregate(rows: list[dict]) -> dict:
+    from fabric_imitation.learning.safety import RULES
+
     ok = [r["success"] for r in rows]
     out = {
         "trials": len(rows),
@@ -194,6 +224,7 @@ def Evaluate(
     priors: Path | None = None,
     scenario_text: str = "",
     progress: bool = True,
+    protocol: str = "transformation",
 ) -> dict:
     """Runs `trials` trials per scenario and method (resumable via `out`,
     a JSON-lines file of finished trials); writes `out`.summary.json and a
@@ -210,10 +241,13 @@ def Evaluate(
                 row = json.loads(line)
             except json.JSONDecodeError:
                 continue  # a line cut by a kill: the trial is run again
-            done[(row["scenario"], row["method"], row["trial"])] = row
+            if row.get("protocol", "transformation") == protocol:
+                done[(row["scenario"], row["method"], row["trial"])] = row
     jobs = []
     for name in scenario_names:
-        poses = TrialPoses(name, trials=trials, seed=seed, scenario_text=scenario_text)
+        poses = ProtocolPoses(
+            name, protocol, trials=trials, seed=seed, scenario_text=scenario_text
+        )
         for method in methods:
             for i, pose in enumerate(poses):
                 if (name, method, i) not in done:
@@ -226,6 +260,7 @@ def Evaluate(
                             "demo": str(demo) if demo else None,
                             "priors": str(priors) if priors else None,
                             "scenario_text": scenario_text,
+                            "protocol": protocol,
                         }
                     )
     # Learn from each scenario's demo once (f_R on its frames, f_A), here,
@@ -276,12 +311,16 @@ def Evaluate(
             ]
             table.setdefault(name, {})[method] = _aggregate(rows)
     summary = {
-        "protocol": "transformation: object moved <= 10 cm, turned <= 45 deg",
+        "protocol": protocol,
+        "protocol_band": {
+            "max_shift_m": PROTOCOLS[protocol][0],
+            "max_turn_deg": PROTOCOLS[protocol][1],
+        },
         "trials_per_cell": trials,
         "seed": seed,
         "poses": {
-            name: TrialPoses(
-                name, trials=trials, seed=seed, scenario_text=scenario_text
+            name: ProtocolPoses(
+                name, protocol, trials=trials, seed=seed, scenario_text=scenario_text
             )
             for name in scenario_names
         },

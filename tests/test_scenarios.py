@@ -126,3 +126,21 @@ def test_evaluate_scenario_text_applies_to_every_trial_pose():
     assert TrialScenario("box", "", None).cloth.engine == "vbd"
     with pytest.raises(InputError, match="not a YAML mapping"):
         TrialScenario("box", "- 1", None)
+
+
+def test_protocols_draw_poses_in_their_bands():
+    import math
+
+    from fabric_imitation.diagrams.evaluate import PROTOCOLS, ProtocolPoses
+
+    base = LoadScenario(scenario_name="hang").object.pose
+    lists = {}
+    for protocol, (shift, turn) in PROTOCOLS.items():
+        poses = ProtocolPoses("hang", protocol, trials=12, seed=3)
+        assert poses == ProtocolPoses("hang", protocol, trials=12, seed=3)
+        for x, y, yaw in poses:
+            assert math.hypot(x - base[0], y - base[1]) <= shift + 1e-6
+            assert abs(yaw - base[2]) <= turn + 1e-6
+        lists[protocol] = poses
+    assert all(p[2] == base[2] for p in lists["translation"])
+    assert max(abs(p[2] - base[2]) for p in lists["wide"]) > 45
