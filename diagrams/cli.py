@@ -313,7 +313,7 @@ def _add_evaluate(p):
         "--methods",
         nargs="+",
         default=["ours"],
-        help="ours, no_mpc, no_prior, no_cost, scripted",
+        help="ours, no_mpc, no_prior, no_cost, replay, scripted",
     )
     p.add_argument(
         "--protocol",

@@ -22,6 +22,9 @@ METHODS = {
     "no_mpc": {"use_mpc": False},
     "no_prior": {"use_prior": False},
     "no_cost": {"use_cost": False},
+    # Replay: the demo's grasped-corner path (f_R on its frames) followed in
+    # the object frame of the trial; no learning beyond f_R.
+    "replay": "replay",
     "scripted": None,  # the scripted demonstration at the trial's pose
 }
 
@@ -160,7 +163,10 @@ def _run_trial(job: dict) -> dict:
             scenario=scenario,
             scenario_name=job["scenario"],
             prepared=_PREPARED[job["scenario"]],
-            mpc_config=dc.replace(scenario.mpc, **METHODS[job["method"]]),
+            mpc_config=None
+            if job["method"] == "replay"
+            else dc.replace(scenario.mpc, **METHODS[job["method"]]),
+            controller="replay" if job["method"] == "replay" else "mpc",
             progress=False,
             seed=job["trial"],
         )

@@ -54,6 +54,7 @@ from fabric_imitation.learning.priors import Priors, load_priors
 from fabric_imitation.learning.safety import RULES, SafetyContext, rule_violations
 from fabric_imitation.learning.state import (
     PlanarPose,
+    corner_indices,
     world_to_object,
 )
 from fabric_imitation.scenarios.schema import Scenario
@@ -64,6 +65,7 @@ from fabric_imitation.systems.imitation import (
     KeypointEstimator,
     MpcController,
     PlanarPoseVector,
+    ReplayController,
 )
 from fabric_imitation.systems.targets import GripperTargetIntegrator
 from fabric_imitation.systems.visualization import ClothFrameRecorder, VideoRecorder
@@ -183,7 +185,7 @@ class ImitationDiagram:
     station: Diagram
     estimator: KeypointEstimator
     reward: DemoReward
-    controller: MpcController
+    controller: MpcController | ReplayController
     targets: GripperTargetIntegrator
     mpc: Mpc
     loggers: dict[str, VectorLogSink]
@@ -206,6 +208,7 @@ def MakeImitationDiagram(
     hardware: bool = False,
     lcm=None,
     video: bool = False,
+    controller: str = "mpc",
 ) -> ImitationDiagram:
     """Station + perception + demo reward + MPC + target integration, with a
     logger per signal an episode is scored on (period: the control step).
@@ -215,6 +218,10 @@ def MakeImitationDiagram(
     waits one control period for the drivers' status and the camera's
     images, the gripper targets start from the measured hands at that step,
     and nothing reads simulation ground truth.
+
+    `controller`: "mpc" (the method) or "replay" (the Replay baseline: the
+    demo's grasped-corner path followed in the object frame of now,
+    `ReplayController`).
 
     With `video=True` a `VideoRecorder` keeps the control camera's images
     and (simulation) an oblique people's camera's at VIDEO_FPS."""
@@ -260,17 +267,25 @@ def MakeImitationDiagram(
         safety_ctx=ObjectSafetyContext(scenario, estimated=True),
         config=cfg,
     )
-    controller = builder.AddNamedSystem(
-        "mpc_controller",
-        MpcController(
-            mpc=mpc,
-            num_keypoints=m,
-            period=dt,
-            offset=start + EVENT_STAGGER,
-            step_cap=int(cfg.step_cap_factor * demo.T) + 5,
-            seed=scenario.random_seed if seed is None else seed,
-        ),
+    timing = dict(
+        num_keypoints=m,
+        period=dt,
+        offset=start + EVENT_STAGGER,
+        step_cap=int(cfg.step_cap_factor * demo.T) + 5,
     )
+    if controller == "mpc":
+        system = MpcController(
+            mpc=mpc, seed=scenario.random_seed if seed is None else seed, **timing
+        )
+    elif controller == "replay":
+        corners = corner_indices(m)
+        path = prepared.demo_states[:, [corners["s1"], corners["s2"]]]
+        system = ReplayController(
+            path=path, max_step=scenario.safety.max_step, **timing
+        )
+    else:
+        raise InputError(f"unknown controller {controller!r}; use mpc or replay")
+    controller = builder.AddNamedSystem("controller", system)
     targets = builder.AddNamedSystem(
         "targets",
         GripperTargetIntegrator(
@@ -703,6 +718,7 @@ def Imitate(
     hardware: bool = False,
     lcm=None,
     co_simulate=None,
+    controller: str = "mpc",
 ) -> dict:
     """Runs one imitation episode; returns the JSON summary. `prepared` (from
     `PrepareImitation`) skips learning from the demo again.
@@ -732,6 +748,7 @@ def Imitate(
         hardware=hardware,
         lcm=lcm,
         video=video is not None,
+        controller=controller,
     )
     root = None
     if co_simulate is not None:

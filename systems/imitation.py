@@ -144,15 +144,20 @@ class DemoReward(LeafSystem):
         output.SetFromVector([float(self._demo.done(self._S(context))[()])])
 
 
-class MpcController(LeafSystem):
-    """Sampling MPC following the demo (learning/mpc.py), once per control step.
+class StepController(LeafSystem):
+    """A controller that decides one relative move per control step; the base
+    of `MpcController` and `ReplayController`, which give the same outputs,
+    so runners and scoring treat them alike.
 
-    Ends the episode (release, zero action) when the termination classifier
-    fires, when no feasible action exists, or at the step cap; in the
-    `retreat_steps` control steps after that it lifts both grippers by
-    `retreat_step` metres each, clear of the released cloth. The rules and
-    the action's frame use the object pose read from ``object_pose`` at each
-    step (on hardware it can come from a marker).
+    Subclasses implement `Finished(S)` (a termination code or None, checked
+    before the step cap) and `Decide(context, S, pose, steps, progress) ->
+    (code, action_O or None, progress, iterations)`: a termination code
+    (RUNNING to act), the move in the object frame, the demo step matched
+    and the iterations spent. At the step cap the episode ends. After the
+    end (release, zero action) the grippers lift `retreat_step` metres in
+    each of `retreat_steps` steps, clear of the released cloth. The action's
+    frame uses the object pose read from ``object_pose`` at each step (on
+    hardware it can come from a marker).
 
     Input ports: ``keypoints`` (3M, object frame), ``object_pose``
     (RigidTransform X_WO).
@@ -160,27 +165,23 @@ class MpcController(LeafSystem):
     ``action`` (6, world-frame relative moves [a_L, a_R]), ``release`` (1),
     ``termination`` (1, one of TERMINATION_NAMES' codes), ``steps`` (1,
     actions taken), ``progress`` (1, the demo step J the state matched),
-    ``solve_ms`` (1), ``iterations`` (1, sampling iterations of the solve).
+    ``solve_ms`` (1), ``iterations`` (1), ``retreated`` (1).
     """
 
     def __init__(
         self,
         *,
-        mpc,
         num_keypoints: int,
         period: float,
         offset: float,
         step_cap: int,
-        seed: int = 0,
         retreat_steps: int = 3,
         retreat_step: float = 0.03,
     ):
         super().__init__()
-        self._mpc = mpc
         self._retreat = (retreat_steps, retreat_step)
         self._m = num_keypoints
         self._cap = step_cap
-        self._seed = seed
         self._kp = self.DeclareVectorInputPort("keypoints", 3 * num_keypoints)
         self._pose = self.DeclareAbstractInputPort(
             "object_pose", AbstractValue.Make(RigidTransform())
@@ -205,6 +206,14 @@ class MpcController(LeafSystem):
     def _get(self, context, name: str) -> np.ndarray:
         return context.get_discrete_state(self._state[name]).value()
 
+    def Finished(self, S) -> int | None:
+        """A termination code if the task is done in state S (checked before
+        the step cap), else None."""
+        return None
+
+    def Decide(self, context, S, pose: PlanarPose, steps: int, progress: int):
+        raise NotImplementedError
+
     def _update(self, context, discrete_state) -> EventStatus:
         def put(name, value):
             discrete_state.get_mutable_vector(self._state[name]).SetFromVector(
@@ -223,42 +232,91 @@ class MpcController(LeafSystem):
         pose = PlanarPose.FromRigidTransform(self._pose.Eval(context))
         steps = int(self._get(context, "steps")[0])
         t0 = time.perf_counter()
-        code = RUNNING
-        if bool(self._mpc.demo.done(S)):
-            code = TERMINATED_CLASSIFIER
-        elif steps >= self._cap:
-            code = TERMINATED_STEP_CAP
+        progress = int(self._get(context, "progress")[0])
         action_W = np.zeros(6)
         iterations = 0
-        if code == RUNNING:
-            previous = int(self._get(context, "progress")[0])
-            result = self._mpc.solve(
-                S,
-                step=steps,
-                seed=self._seed,
-                previous_progress=previous,
-                frame_pose=pose,
+        code = self.Finished(S)
+        if code is None and steps >= self._cap:
+            code = TERMINATED_STEP_CAP
+        if code is None:
+            code, action_O, progress, iterations = self.Decide(
+                context, S, pose, steps, progress
             )
-            put("progress", result.progress)
-            iterations = result.iterations
-            if result.feasible:
-                action_W = pose.vector_to_world(
-                    result.action.numpy().reshape(2, 3)
-                ).ravel()
+            if code == RUNNING:
+                action_W = pose.vector_to_world(np.reshape(action_O, (2, 3))).ravel()
                 steps += 1
-            else:
-                code = TERMINATED_INFEASIBLE
-                _LOG.warning(
-                    "no feasible action at step %d (of %d sampled sequences, "
-                    "how many break each rule: %s); releasing",
-                    steps,
-                    self._mpc.config.num_samples,
-                    result.blocked_by,
-                )
         put("action", action_W)
         put("release", 1.0 if code != RUNNING else 0.0)
         put("termination", code)
         put("steps", steps)
+        put("progress", progress)
         put("solve_ms", 1000 * (time.perf_counter() - t0))
         put("iterations", iterations)
         return EventStatus.Succeeded()
+
+
+class MpcController(StepController):
+    """Sampling MPC following the demo (learning/mpc.py), once per control
+    step (see StepController for ports). Ends the episode when the
+    termination classifier fires, when no feasible action exists, or at the
+    step cap. The rules use the object pose of the step."""
+
+    def __init__(self, *, mpc, seed: int = 0, **kwargs):
+        super().__init__(**kwargs)
+        self._mpc = mpc
+        self._seed = seed
+
+    def Finished(self, S) -> int | None:
+        return TERMINATED_CLASSIFIER if bool(self._mpc.demo.done(S)) else None
+
+    def Decide(self, context, S, pose, steps, progress):
+        result = self._mpc.solve(
+            S,
+            step=steps,
+            seed=self._seed,
+            previous_progress=progress,
+            frame_pose=pose,
+        )
+        if not result.feasible:
+            _LOG.warning(
+                "no feasible action at step %d (of %d sampled sequences, "
+                "how many break each rule: %s); releasing",
+                steps,
+                self._mpc.config.num_samples,
+                result.blocked_by,
+            )
+            return TERMINATED_INFEASIBLE, None, result.progress, result.iterations
+        return RUNNING, result.action.numpy(), result.progress, result.iterations
+
+
+class ReplayController(StepController):
+    """The Replay baseline: no learning beyond f_R. It follows the demo's
+    grasped-corner path (`path`, (T, 2, 3): s1 and s2 per demo frame, in the
+    demo's object frame, as f_R saw them), mapped into the object frame of
+    now: each step it moves the grippers (the measured s1, s2 of
+    ``keypoints``) towards the next point of the path, at most `max_step`
+    per axis, and releases once the path's end is reached within `tolerance`
+    (see StepController for ports and the step cap)."""
+
+    def __init__(self, *, path, max_step: float, tolerance: float = 0.01, **kwargs):
+        super().__init__(**kwargs)
+        self._path = np.asarray(path, float).reshape(-1, 6)
+        self._max_step = max_step
+        self._tolerance = tolerance
+        self._s1, self._s2 = (corner_indices(self._m)[k] for k in ("s1", "s2"))
+
+    def Decide(self, context, S, pose, steps, progress):
+        grippers = np.concatenate([S[self._s1].numpy(), S[self._s2].numpy()])
+        last = len(self._path) - 1
+        k = min(progress, last)
+        # Skip the path points the grippers are already at.
+        while (
+            k < last and np.abs(self._path[k + 1] - grippers).max() <= self._tolerance
+        ):
+            k += 1
+        if k == last and np.abs(self._path[k] - grippers).max() <= self._tolerance:
+            return TERMINATED_CLASSIFIER, None, k, 0
+        gap = self._path[min(k + 1, last)] - grippers
+        action = np.clip(gap, -self._max_step, self._max_step)
+        reached = np.abs(gap).max() <= self._max_step + 1e-6
+        return RUNNING, action, min(k + 1, last) if reached else k, 0

@@ -272,3 +272,47 @@ def test_release_latch_stays_released():
     port.FixValue(context, [0.0])
     simulator.AdvanceTo(0.2)
     assert dut.GetOutputPort("released").Eval(context)[0] == 1.0
+
+
+def test_replay_follows_a_known_path_in_a_turned_object_frame():
+    from fabric_imitation.systems.imitation import ReplayController
+
+    # The demo's grasped corners (object frame): lift 6 cm, then forward 4 cm.
+    s1, s2 = np.array([-0.15, 0.0, 0.0]), np.array([0.15, 0.0, 0.0])
+    steps_O = [[0, 0, 0.03]] * 2 + [[0, 0.02, 0]] * 2
+    path = [np.concatenate([s1, s2])]
+    for d in steps_O:
+        path.append(path[-1] + np.tile(d, 2))
+    dut = ReplayController(
+        path=np.array(path).reshape(-1, 2, 3),
+        max_step=0.03,
+        num_keypoints=8,
+        period=DT,
+        offset=0.0,
+        step_cap=20,
+    )
+    simulator = Simulator(dut)
+    context = simulator.get_mutable_context()
+    yaw = math.pi / 2
+    X_WO = RigidTransform(RotationMatrix.MakeZRotation(yaw), [0.2, 0.1, 0.0])
+    dut.GetInputPort("object_pose").FixValue(context, X_WO)
+    S = flat(y0=0.0)
+    actions = []
+    for k in range(8):
+        dut.GetInputPort("keypoints").FixValue(context, S.ravel())
+        simulator.AdvanceTo((k + 0.5) * DT)
+        if dut.GetOutputPort("termination").Eval(context)[0] != RUNNING:
+            break
+        a_W = dut.GetOutputPort("action").Eval(context).copy()
+        actions.append(a_W)
+        # The grippers follow exactly (the object frame of the state).
+        a_O = PlanarPose(0.2, 0.1, yaw).vector_to_object(a_W.reshape(2, 3))
+        S[0] += a_O[0]
+        S[2] += a_O[1]
+    expected_W = [
+        PlanarPose(0.2, 0.1, yaw).vector_to_world(np.tile(d, (2, 1))).ravel()
+        for d in steps_O
+    ]
+    np.testing.assert_allclose(actions, expected_W, atol=1e-6)  # float32 states
+    assert dut.GetOutputPort("termination").Eval(context)[0] == TERMINATED_CLASSIFIER
+    assert dut.GetOutputPort("release").Eval(context)[0] == 1.0
