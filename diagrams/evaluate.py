@@ -203,6 +203,7 @@ def _aggregate(rows: list[dict]) -> dict:
                 "trials_with_true_rule_breaks": int(
                     sum(r["executed_violations_ground_truth"] > 0 for r in rows)
                 ),
+                "steps_mean": round(float(np.mean([r["steps"] for r in rows])), 1),
                 "trial_seconds_mean": round(
                     float(np.mean([r["trial_seconds"] for r in rows])), 1
                 ),
@@ -351,7 +352,45 @@ def Evaluate(
     }
     Path(str(out) + ".summary.json").write_text(json.dumps(summary, indent=1))
     _plot(table, Path(str(out) + ".png"))
+    Path(str(out) + ".md").write_text(ResultsMarkdown(summary))
     return summary
+
+
+def ResultsMarkdown(summary: dict) -> str:
+    """The summary's results as a Markdown table in the layout of the
+    paper's Table I (one row per task and method)."""
+    lines = [
+        f"Protocol `{summary['protocol']}` (object moved <= "
+        f"{summary['protocol_band']['max_shift_m'] * 100:g} cm, turned <= "
+        f"{summary['protocol_band']['max_turn_deg']:g} deg), pose seed "
+        f"{summary['seed']}, {summary['trials_per_cell']} trials per cell.",
+        "",
+        "| task | method | success | IoU | Chamfer [m] | true rule breaks "
+        "(trials with any) | steps (mean) |",
+        "|---|---|---|---|---|---|---|",
+    ]
+    for task, methods in summary["results"].items():
+        for method, r in methods.items():
+            if not r["trials"]:
+                continue
+            success = (
+                f"{r['successes']} / {r['trials']} ({100 * r['success_rate']:.0f}%)"
+            )
+            if "iou_mean" in r:
+                iou = f"{r['iou_mean']:.2f} +- {r['iou_std']:.2f}"
+                chamfer = f"{r['chamfer_mean']:.4f}"
+                breaks = (
+                    f"{r['executed_violations_ground_truth']} "
+                    f"({r['trials_with_true_rule_breaks']})"
+                )
+                steps = f"{r['steps_mean']:.1f}" if "steps_mean" in r else "-"
+            else:
+                iou = chamfer = breaks = steps = "-"
+            lines.append(
+                f"| {task} | {method} | {success} | {iou} | {chamfer} | {breaks} "
+                f"| {steps} |"
+            )
+    return "\n".join(lines) + "\n"
 
 
 def _plot(table: dict, path: Path) -> None:

@@ -1,0 +1,50 @@
+"""Evaluation bookkeeping: aggregates and the Table-I markdown agree with the
+trials' JSON lines."""
+
+from fabric_imitation.diagrams.evaluate import PROTOCOLS, ResultsMarkdown, _aggregate
+
+
+def _row(trial, success, breaks, steps, iou):
+    rules = {"any": breaks, "bounds": 0, "distance": 0, "direction": breaks}
+    return {
+        "trial": trial,
+        "success": success,
+        "final_iou": iou,
+        "final_chamfer": 0.001,
+        "executed_violations": 0,
+        "executed_violations_ground_truth": breaks,
+        "rule_breaks_true": {**rules, "workspace": 0, "object": 0},
+        "termination": "classifier",
+        "mpc_step_ms": {"p50": 60.0, "p95": 90.0},
+        "steps": steps,
+        "trial_seconds": 10.0,
+    }
+
+
+def test_the_table_agrees_with_the_trials():
+    rows = [
+        _row(0, True, 0, 20, 0.9),
+        _row(1, False, 3, 40, 0.5),
+        _row(2, True, 1, 30, 0.7),
+    ]
+    cell = _aggregate(rows)
+    assert (cell["successes"], cell["trials"]) == (2, 3)
+    assert cell["executed_violations_ground_truth"] == 4
+    assert cell["trials_with_true_rule_breaks"] == 2
+    assert cell["steps_mean"] == 30.0
+    summary = {
+        "protocol": "wide",
+        "protocol_band": {
+            "max_shift_m": PROTOCOLS["wide"][0],
+            "max_turn_deg": PROTOCOLS["wide"][1],
+        },
+        "seed": 4,
+        "trials_per_cell": 3,
+        "results": {"hang": {"replay": cell}},
+    }
+    table = ResultsMarkdown(summary)
+    assert (
+        "| hang | replay | 2 / 3 (67%) | 0.70 +- 0.16 | 0.0010 | 4 (2) | 30.0 |"
+        in table
+    )
+    assert "Protocol `wide` (object moved <= 15 cm, turned <= 90 deg)" in table
