@@ -113,7 +113,12 @@ _PREPARED: dict = {}
 
 
 def _set_prepared(prepared: dict) -> None:
+    import logging
+
     import torch
+
+    # As in the CLI: no CUDA warning from torch.compile in each worker.
+    logging.getLogger("torch.utils.cpp_extension").setLevel(logging.ERROR)
 
     torch.set_num_threads(1)
     _PREPARED.update(prepared)
