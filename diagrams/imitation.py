@@ -47,9 +47,12 @@ from fabric_imitation.diagrams.success import TaskSuccess
 from fabric_imitation.learning.demo_io import Demo, LoadDemo
 from fabric_imitation.learning.demo_learning import DemoModel, learn_from_demo
 from fabric_imitation.learning.errors import InputError
-from fabric_imitation.learning.metrics import chamfer_distance, cloud_from_depth
+from fabric_imitation.learning.metrics import (
+    chamfer_distance,
+    cloud_from_depth,
+    raster_iou,
+)
 from fabric_imitation.learning.mpc import Mpc, MpcConfig
-from fabric_imitation.learning.polygon import iou
 from fabric_imitation.learning.priors import Priors, load_priors
 from fabric_imitation.learning.safety import RULES, SafetyContext, rule_violations
 from fabric_imitation.learning.state import (
@@ -679,12 +682,7 @@ def ScoreEpisode(
         gt = np.load(demo.path / "ground_truth.npz")
         demo_final = world_to_object(gt["final_keypoints_W"], demo.object_pose)
         final_O = world_to_object(final.keypoints_W, pose)
-        final_iou = float(
-            iou(
-                torch.as_tensor(final_O[:, :2]),
-                torch.as_tensor(demo_final[:, :2], dtype=torch.float64),
-            )
-        )
+        final_iou = raster_iou(final_O[:, :2], demo_final[:, :2])
         from fabric_imitation.learning.geometry import PinholeCamera
 
         chamfer = _chamfer(

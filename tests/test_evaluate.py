@@ -48,3 +48,19 @@ def test_the_table_agrees_with_the_trials():
         in table
     )
     assert "Protocol `wide` (object moved <= 15 cm, turned <= 90 deg)" in table
+
+
+def test_final_iou_is_bounded_for_a_twisted_outline():
+    import numpy as np
+    import torch
+    from fabric_imitation.learning.metrics import raster_iou
+    from fabric_imitation.learning.polygon import iou
+
+    square = np.array([[0, 0], [0.3, 0], [0.3, 0.3], [0, 0.3]])
+    for shift in (0.0, 0.1, 0.2):
+        moved = square + [shift, 0.05]
+        exact = float(iou(torch.as_tensor(square), torch.as_tensor(moved)))
+        assert abs(raster_iou(square, moved) - exact) < 0.01
+    bow_tie = np.array([[0, 0], [0.3, 0.3], [0.3, 0], [0, 0.3]])
+    assert 0.45 < raster_iou(bow_tie, square) < 0.55
+    assert raster_iou(bow_tie, bow_tie) == 1.0
