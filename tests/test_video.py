@@ -53,12 +53,15 @@ def test_simulate_writes_both_videos_at_15_fps(tmp_path):
 def test_a_video_that_cannot_be_written_keeps_the_summary(tmp_path):
     scenario = LoadScenario(scenario_name="box", scenario_text=SmallCloth("vbd"))
     out = tmp_path / "gone" / "run.mp4"  # its folder does not exist
+    record = tmp_path / "gone" / "run.html"
     summary = Simulate(
         scenario=scenario,
         scenario_name="box",
         duration=0.2,
         video=out,
+        record=record,
         progress=False,
     )
     assert summary["success"] is not None and "videos" not in summary
     assert summary["output_errors"][0].startswith(f"--video {out}: ")
+    assert summary["output_errors"][1].startswith(f"--record {record}: ")
