@@ -298,6 +298,14 @@ def Evaluate(
         done[(row["scenario"], row["method"], row["trial"])] = row
         if bar is not None:
             bar.update()
+            # Running success per scenario and method, e.g. "box/ours 4/5".
+            cells = {}
+            for (scenario, method, _), r in done.items():
+                ok, n = cells.get(f"{scenario}/{method}", (0, 0))
+                cells[f"{scenario}/{method}"] = (ok + bool(r["success"]), n + 1)
+            bar.set_postfix_str(
+                " ".join(f"{k} {ok}/{n}" for k, (ok, n) in sorted(cells.items()))
+            )
 
     if workers == 1:
         _set_prepared(prepared)

@@ -64,3 +64,48 @@ def test_final_iou_is_bounded_for_a_twisted_outline():
     bow_tie = np.array([[0, 0], [0.3, 0.3], [0.3, 0], [0, 0.3]])
     assert 0.45 < raster_iou(bow_tie, square) < 0.55
     assert raster_iou(bow_tie, bow_tie) == 1.0
+
+
+def test_an_evaluation_killed_mid_way_resumes_without_repeating_or_losing(tmp_path):
+    import json
+    import os
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    from conftest import SmallCloth
+
+    out = tmp_path / "eval.jsonl"
+    command = [
+        sys.executable,
+        "-m",
+        "fabric_imitation.diagrams.cli",
+        "evaluate",
+        "--scenarios",
+        "box",
+        "--methods",
+        "scripted",
+        "--trials",
+        "3",
+        "--scenario-text",
+        SmallCloth("vbd"),
+        "--out",
+        str(out),
+    ]
+    first = subprocess.Popen(
+        command, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL
+    )
+    deadline = time.time() + 240
+    while time.time() < deadline and not (out.exists() and out.read_text().count("\n")):
+        time.sleep(0.2)
+    os.kill(first.pid, signal.SIGKILL)
+    first.wait()
+    before = out.read_text().splitlines()
+    assert 1 <= len(before) < 3
+    subprocess.run(command, check=True, capture_output=True, timeout=300)
+    rows = [json.loads(line) for line in out.read_text().splitlines()]
+    assert out.read_text().splitlines()[: len(before)] == before  # kept as written
+    assert sorted(r["trial"] for r in rows) == [0, 1, 2]  # none repeated, none lost
+    summary = json.loads((tmp_path / "eval.jsonl.summary.json").read_text())
+    assert summary["results"]["box"]["scripted"]["trials"] == 3
