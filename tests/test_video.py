@@ -32,16 +32,19 @@ def test_write_video_is_h264_upscaled_to_the_minimum_size(tmp_path):
     assert not list(tmp_path.glob("*.partial*"))
 
 
-def test_simulate_writes_both_videos_at_15_fps(tmp_path):
-    scenario = LoadScenario(scenario_name="box", scenario_text=SmallCloth("vbd"))
-    out = tmp_path / "run.mp4"
-    summary = Simulate(
-        scenario=scenario,
+def _simulate_small_box(duration, **outputs):
+    return Simulate(
+        scenario=LoadScenario(scenario_name="box", scenario_text=SmallCloth("vbd")),
         scenario_name="box",
-        duration=0.4,
-        video=out,
+        duration=duration,
         progress=False,
+        **outputs,
     )
+
+
+def test_simulate_writes_both_videos_at_15_fps(tmp_path):
+    out = tmp_path / "run.mp4"
+    summary = _simulate_small_box(0.4, video=out)
     assert summary["videos"] == [str(out), str(tmp_path / "run.people.mp4")]
     for path in summary["videos"]:
         codec, pix, w, h, fps, n = _probe(path)
@@ -51,17 +54,9 @@ def test_simulate_writes_both_videos_at_15_fps(tmp_path):
 
 
 def test_a_video_that_cannot_be_written_keeps_the_summary(tmp_path):
-    scenario = LoadScenario(scenario_name="box", scenario_text=SmallCloth("vbd"))
     out = tmp_path / "gone" / "run.mp4"  # its folder does not exist
     record = tmp_path / "gone" / "run.html"
-    summary = Simulate(
-        scenario=scenario,
-        scenario_name="box",
-        duration=0.2,
-        video=out,
-        record=record,
-        progress=False,
-    )
+    summary = _simulate_small_box(0.2, video=out, record=record)
     assert summary["success"] is not None and "videos" not in summary
     assert summary["output_errors"][0].startswith(f"--video {out}: ")
     assert summary["output_errors"][1].startswith(f"--record {record}: ")
