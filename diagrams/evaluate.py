@@ -255,11 +255,14 @@ def Evaluate(
                 continue  # a line cut by a kill: the trial is run again
             if row.get("protocol", "transformation") == protocol:
                 done[(row["scenario"], row["method"], row["trial"])] = row
-    jobs = []
-    for name in scenario_names:
-        poses = ProtocolPoses(
+    pose_lists = {
+        name: ProtocolPoses(
             name, protocol, trials=trials, seed=seed, scenario_text=scenario_text
         )
+        for name in scenario_names
+    }
+    jobs = []
+    for name, poses in pose_lists.items():
         for method in methods:
             for i, pose in enumerate(poses):
                 if (name, method, i) not in done:
@@ -338,12 +341,7 @@ def Evaluate(
         },
         "trials_per_cell": trials,
         "seed": seed,
-        "poses": {
-            name: ProtocolPoses(
-                name, protocol, trials=trials, seed=seed, scenario_text=scenario_text
-            )
-            for name in scenario_names
-        },
+        "poses": pose_lists,
         "prepare_seconds": prepare_seconds,
         "results": table,
         "failures": [

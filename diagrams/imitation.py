@@ -29,6 +29,7 @@ import numpy as np
 import torch
 from fabric_imitation.diagrams.recording import MakeRecordingMeshcat
 from fabric_imitation.diagrams.simulation import (
+    AddClothRecorder,
     AddVideoRecorder,
     CaptureFrame,
     Frame,
@@ -71,7 +72,7 @@ from fabric_imitation.systems.imitation import (
     ReplayController,
 )
 from fabric_imitation.systems.targets import GripperTargetIntegrator
-from fabric_imitation.systems.visualization import ClothFrameRecorder, VideoRecorder
+from fabric_imitation.systems.visualization import VideoRecorder
 from pydrake.systems.analysis import Simulator
 from pydrake.systems.framework import Diagram, DiagramBuilder
 from pydrake.systems.primitives import LogVectorOutput, Multiplexer, VectorLogSink
@@ -357,22 +358,7 @@ def MakeImitationDiagram(
         loggers[name] = LogVectorOutput(port, builder, publish_period=dt)
         loggers[name].set_name(f"log.{name}")
     if meshcat is not None and not hardware:
-        from fabric_imitation.diagrams.cloth_mesh import TopTriangles
-
-        mesh = station.handles.mesh
-        recorder = builder.AddNamedSystem(
-            "cloth_recorder",
-            ClothFrameRecorder(
-                meshcat=meshcat,
-                num_vertices=len(mesh.vertices),
-                triangles=TopTriangles(mesh.top_layer),
-                period=1 / 16,
-            ),
-        )
-        builder.Connect(
-            station.GetOutputPort(StationPorts.CLOTH_POSITIONS),
-            recorder.GetInputPort("positions"),
-        )
+        AddClothRecorder(builder, station, meshcat)
     for system, port in (
         (estimator, "keypoints"),
         (reward, "progress"),

@@ -66,6 +66,26 @@ def CaptureFrame(station: Diagram, station_context) -> Frame:
 VIDEO_FPS = 15.0  # frames per second of the videos for people
 
 
+def AddClothRecorder(builder, station, meshcat: Meshcat) -> ClothFrameRecorder:
+    """Draws the station's cloth into a recording meshcat 16 times a second
+    (Drake's own drawing of a deformable body keeps only its last shape)."""
+    mesh = station.handles.mesh
+    recorder = builder.AddNamedSystem(
+        "cloth_recorder",
+        ClothFrameRecorder(
+            meshcat=meshcat,
+            num_vertices=len(mesh.vertices),
+            triangles=TopTriangles(mesh.top_layer),
+            period=1 / 16,
+        ),
+    )
+    builder.Connect(
+        station.GetOutputPort(StationPorts.CLOTH_POSITIONS),
+        recorder.GetInputPort("positions"),
+    )
+    return recorder
+
+
 def AddVideoRecorder(builder, station, scenario: Scenario) -> VideoRecorder:
     """A VideoRecorder on the station's control camera and, when the station
     has one, its people's camera, at VIDEO_FPS."""
@@ -197,7 +217,7 @@ class OpenLoopRun:
         self.meshcat = meshcat
         self.video = AddVideoRecorder(builder, station, scenario) if video else None
         if meshcat is not None:
-            self._add_recording(builder, station, meshcat)
+            AddClothRecorder(builder, station, meshcat)
         self.diagram = builder.Build()
         self.station = station
         self.integrator = integrator
@@ -212,22 +232,6 @@ class OpenLoopRun:
         self.station_context = station.GetMyContextFromRoot(self.context)
         InitializeStation(station, station.GetMyMutableContextFromRoot(self.context))
         self.simulator.Initialize()
-
-    def _add_recording(self, builder, station, meshcat: Meshcat) -> None:
-        handles = station.handles
-        recorder = builder.AddNamedSystem(
-            "cloth_recorder",
-            ClothFrameRecorder(
-                meshcat=meshcat,
-                num_vertices=len(handles.mesh.vertices),
-                triangles=TopTriangles(handles.mesh.top_layer),
-                period=1 / 16,
-            ),
-        )
-        builder.Connect(
-            station.GetOutputPort(StationPorts.CLOTH_POSITIONS),
-            recorder.GetInputPort("positions"),
-        )
 
     @property
     def num_steps(self) -> int:
