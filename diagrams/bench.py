@@ -102,7 +102,7 @@ def _grippers_z(run: OpenLoopRun) -> float:
     """The higher gripper's measured height (no camera rendering)."""
     return max(
         float(
-            run.station.GetOutputPort(StationPorts.ee_measured(side)).Eval(
+            run.station.diagram.GetOutputPort(StationPorts.ee_measured(side)).Eval(
                 run.station_context
             )[2]
         )
@@ -164,7 +164,7 @@ def BenchScenario(
     draped = _measure(run, _grid(t_end, draped_seconds), scenario)
     if scenario.task != "prior":
         report = TaskSuccess(
-            scenario, run.capture_positions(), run.station.handles.mesh.top_layer
+            scenario, run.capture_positions(), run.station.mesh.top_layer
         )
         draped["task_success"] = bool(report.success)
         draped["physically_ok"] = draped["physically_ok"] and (
@@ -177,7 +177,7 @@ def BenchScenario(
     return {
         "scenario": name,
         "engine": engine,
-        "cloth_vertices": len(flat_run.station.handles.mesh.vertices),
+        "cloth_vertices": len(flat_run.station.mesh.vertices),
         "time_step": scenario.plant_config.time_step,
         "flat": flat,
         "moving": moving,

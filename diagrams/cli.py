@@ -45,6 +45,8 @@ DESCRIPTIONS = {
     "collect": "Collect prior transitions in the contact-free prior scene "
     "(random safe actions), resumable.",
     "train": "Train the priors f_R, f_D and f_I on a collected dataset.",
+    "train-baselines": "Train the Zero, CFM and TCN baselines' networks on a "
+    "collected dataset (next to the priors).",
     "imitate": "Imitate a demo with the priors at once, in simulation or on "
     "real drivers (--hardware): the main job.",
     "evaluate": "Run imitation trials with the object moved and turned, per "
@@ -233,6 +235,32 @@ def _train(args) -> dict:
         epochs=args.epochs, seed=args.seed, keypoint_epochs=args.keypoint_epochs
     )
     return train_priors(data=args.data, out=args.out, config=config)
+
+
+def _add_train_baselines(p):
+    p.add_argument("--data", type=Path, required=True, help="prior dataset (HDF5)")
+    p.add_argument(
+        "--out",
+        type=Path,
+        required=True,
+        help="checkpoint directory (the priors' directory, so evaluate finds them)",
+    )
+    p.add_argument("--epochs", type=int, default=20)
+    p.add_argument("--seed", type=int, default=0)
+
+
+@command("train-baselines")(_add_train_baselines)
+def _train_baselines(args) -> dict:
+    from fabric_imitation.learning.baselines import (
+        BaselineTrainConfig,
+        TrainBaselines,
+    )
+
+    return TrainBaselines(
+        data=args.data,
+        out=args.out,
+        config=BaselineTrainConfig(epochs=args.epochs, seed=args.seed),
+    )
 
 
 def _add_imitate(p):

@@ -81,7 +81,8 @@ class EpisodeCollector:
             )
         self.scenario = scenario
         builder = DiagramBuilder()
-        station = builder.AddNamedSystem("station", MakeClothStation(scenario))
+        self.station = MakeClothStation(scenario)
+        station = builder.AddNamedSystem("station", self.station.diagram)
         integrator = builder.AddNamedSystem(
             "targets",
             GripperTargetIntegrator(step_seconds=scenario.motion.step_seconds),
@@ -93,7 +94,6 @@ class EpisodeCollector:
             )
         builder.ExportInput(integrator.GetInputPort("action"), "action")
         self.diagram = builder.Build()
-        self.station = station
         self.simulator = Simulator(self.diagram)
         self.context = self.simulator.get_mutable_context()
         corners = GraspCorners(scenario)
@@ -105,7 +105,9 @@ class EpisodeCollector:
         station.GetInputPort(StationPorts.RELEASE).FixValue(
             station.GetMyMutableContextFromRoot(self.context), [0.0]
         )
-        InitializeStation(station, station.GetMyMutableContextFromRoot(self.context))
+        InitializeStation(
+            self.station, station.GetMyMutableContextFromRoot(self.context)
+        )
         self.default_context = self.context.Clone()
         self.station_context = station.GetMyContextFromRoot(self.context)
         self.action_port = self.diagram.GetInputPort("action")
@@ -113,7 +115,7 @@ class EpisodeCollector:
 
     def _observe(self):
         def port(name):
-            return self.station.GetOutputPort(name).Eval(self.station_context)
+            return self.station.diagram.GetOutputPort(name).Eval(self.station_context)
 
         return (
             np.array(port(StationPorts.MASK).data[:, :, 0]),

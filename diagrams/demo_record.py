@@ -7,6 +7,7 @@ import numpy as np
 from fabric_imitation.diagrams.demos import ScriptedDemoPlan
 from fabric_imitation.diagrams.recording import MakeRecordingMeshcat
 from fabric_imitation.diagrams.simulation import OpenLoopRun, RunResult, WriteOutputs
+from fabric_imitation.diagrams.station import ClothStation
 from fabric_imitation.learning.demo_io import (
     CameraModel,
     ExistingDemoRequest,
@@ -17,8 +18,8 @@ from fabric_imitation.scenarios.loader import DumpScenario
 from fabric_imitation.scenarios.schema import Scenario
 
 
-def StationCameraModel(station) -> CameraModel:
-    info = station.handles.camera_info
+def StationCameraModel(station: ClothStation) -> CameraModel:
+    info = station.camera_info
     return CameraModel(
         width=info.width(),
         height=info.height(),
@@ -26,7 +27,7 @@ def StationCameraModel(station) -> CameraModel:
         fy=info.focal_y(),
         cx=info.center_x(),
         cy=info.center_y(),
-        X_WC=station.handles.X_WCamera.GetAsMatrix4(),
+        X_WC=station.X_WCamera.GetAsMatrix4(),
     )
 
 

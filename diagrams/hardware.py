@@ -30,6 +30,7 @@ from fabric_imitation.diagrams.panda import (
 from fabric_imitation.diagrams.station import (
     CLOTH_LABEL,
     NUM_KEYPOINTS,
+    ClothStation,
     GraspCorners,
     PoseOnTable,
     StationPorts,
@@ -180,7 +181,7 @@ def HandChannel(command_channel: str) -> str:
 
 def MakeHardwareClothStation(
     scenario: Scenario, *, lcm: DrakeLcm | None = None
-) -> Diagram:
+) -> ClothStation:
     """The station's ports on real Panda drivers over LCM (see module doc)."""
     config = scenario.grippers.panda
     lcm = lcm or DrakeLcm(config.lcm_url)
@@ -295,22 +296,21 @@ def MakeHardwareClothStation(
             name, ConstantVectorSource(np.full(size, np.nan))
         )
         builder.ExportOutput(unknown.get_output_port(), name)
-    station = builder.Build()
-    station.set_name("cloth_station_hardware")
-
-    # The IK's control model and collision checker must outlive the station.
-    station.handles = _HardwareHandles(
-        scenario=scenario, initialize=diff_ik.initialize, q0=q0, ik=ik
+    diagram = builder.Build()
+    diagram.set_name("cloth_station_hardware")
+    color, _ = scenario.camera.MakeCameras()
+    return ClothStation(
+        diagram=diagram,
+        scenario=scenario,
+        camera_info=color.core().intrinsics(),
+        X_WCamera=scenario.camera.X_PB.GetDeterministicValue(),
+        X_WO=PoseOnTable(scenario.object.pose),
+        initialize=diff_ik.initialize,
+        # The IK's control model and collision checker must outlive the
+        # diagram, which refers to them.
+        keep_alive=(ik, q0),
+        hardware=True,
     )
-    return station
-
-
-class _HardwareHandles:
-    def __init__(self, *, scenario, initialize, q0, ik):
-        self.scenario = scenario
-        self.initialize = initialize
-        self.q0 = q0
-        self.ik = ik
 
 
 def _add_lcm_camera(builder: DiagramBuilder, scenario: Scenario, lcm) -> None:
@@ -395,16 +395,16 @@ class CameraWatchdog(LeafSystem):
         return EventStatus.Succeeded()
 
 
-def HoldArms(station: Diagram, station_context, scenario: Scenario, lcm) -> None:
+def HoldArms(station: ClothStation, station_context, lcm) -> None:
     """Tells both Panda drivers to hold their measured joint positions (one
     lcmt_panda_command each, published now): what `imitate --hardware` does
     when it is interrupted."""
-    config = scenario.grippers.panda
+    config = station.scenario.grippers.panda
     for side in SIDES:
         q = np.array(
-            station.GetOutputPort(f"{InstanceName(side)}.position_measured").Eval(
-                station_context
-            )
+            station.diagram.GetOutputPort(
+                f"{InstanceName(side)}.position_measured"
+            ).Eval(station_context)
         )
         msg = lcmt_panda_command()
         msg.utime = int(station_context.get_time() * 1e6)
@@ -465,7 +465,7 @@ def MakeSimulatedLab(
     lcm: DrakeLcm,
     camera_period: float = 0.05,
     camera_until: float | None = None,
-) -> tuple[Diagram, Diagram]:
+) -> tuple[Diagram, ClothStation]:
     """The other end of `MakeHardwareClothStation` without hardware: the
     simulated cloth station with two Pandas that answer the drivers' LCM
     channels (joint position commands in, status out, hand commands open the
@@ -480,9 +480,8 @@ def MakeSimulatedLab(
     config = scenario.grippers.panda
     dt = scenario.plant_config.time_step
     builder = DiagramBuilder()
-    station = builder.AddNamedSystem(
-        "lab_station", MakeClothStation(scenario, joint_commands=True)
-    )
+    lab_station = MakeClothStation(scenario, joint_commands=True)
+    station = builder.AddNamedSystem("lab_station", lab_station.diagram)
     release = builder.AddNamedSystem("hand_release", ReleaseFromHandCommand())
     builder.Connect(
         release.GetOutputPort("release"), station.GetInputPort(StationPorts.RELEASE)
@@ -593,4 +592,4 @@ def MakeSimulatedLab(
     builder.Connect(message, camera.get_input_port())
     lab = builder.Build()
     lab.set_name("simulated_lab")
-    return lab, station
+    return lab, lab_station

@@ -39,6 +39,7 @@ from fabric_imitation.diagrams.station import (
     SIDES,
     AdvanceStationTo,
     CameraModelFromConfig,
+    ClothStation,
     GraspCorners,
     InitializeStation,
     MakeClothStation,
@@ -186,7 +187,7 @@ class ImitationDiagram:
     """The built imitation diagram and the systems runners use."""
 
     diagram: Diagram
-    station: Diagram
+    station: ClothStation
     estimator: KeypointEstimator
     reward: DemoReward
     controller: MpcController | ReplayController
@@ -239,16 +240,14 @@ def MakeImitationDiagram(
         from pydrake.lcm import DrakeLcm
 
         lcm = lcm or DrakeLcm(scenario.grippers.panda.lcm_url)
-    station = builder.AddNamedSystem(
-        "station",
-        MakeClothStation(
-            scenario,
-            meshcat=meshcat,
-            hardware=hardware,
-            lcm=lcm,
-            people_camera=video and not hardware,
-        ),
+    station = MakeClothStation(
+        scenario,
+        meshcat=meshcat,
+        hardware=hardware,
+        lcm=lcm,
+        people_camera=video and not hardware,
     )
+    builder.AddNamedSystem("station", station.diagram)
     cam = scenario.camera
     estimator = builder.AddNamedSystem(
         "keypoint_estimator",
@@ -300,23 +299,25 @@ def MakeImitationDiagram(
     )
     pose = builder.AddNamedSystem("object_pose", PlanarPoseVector())
     builder.Connect(
-        station.GetOutputPort(StationPorts.OBJECT_POSE), pose.GetInputPort("pose")
+        station.diagram.GetOutputPort(StationPorts.OBJECT_POSE),
+        pose.GetInputPort("pose"),
     )
     builder.Connect(
-        station.GetOutputPort(StationPorts.MASK), estimator.GetInputPort("mask")
+        station.diagram.GetOutputPort(StationPorts.MASK), estimator.GetInputPort("mask")
     )
     builder.Connect(
-        station.GetOutputPort(StationPorts.DEPTH), estimator.GetInputPort("depth")
+        station.diagram.GetOutputPort(StationPorts.DEPTH),
+        estimator.GetInputPort("depth"),
     )
     for system in (estimator, controller):
         builder.Connect(
-            station.GetOutputPort(StationPorts.OBJECT_POSE),
+            station.diagram.GetOutputPort(StationPorts.OBJECT_POSE),
             system.GetInputPort("object_pose"),
         )
     grippers = builder.AddNamedSystem("gripper_positions", Multiplexer([3, 3]))
     for k, side in enumerate(SIDES):
         builder.Connect(
-            station.GetOutputPort(StationPorts.ee_measured(side)),
+            station.diagram.GetOutputPort(StationPorts.ee_measured(side)),
             grippers.get_input_port(k),
         )
     builder.Connect(grippers.get_output_port(), estimator.GetInputPort("grippers"))
@@ -327,12 +328,13 @@ def MakeImitationDiagram(
         )
     builder.Connect(controller.GetOutputPort("action"), targets.GetInputPort("action"))
     builder.Connect(
-        controller.GetOutputPort("release"), station.GetInputPort(StationPorts.RELEASE)
+        controller.GetOutputPort("release"),
+        station.diagram.GetInputPort(StationPorts.RELEASE),
     )
     for side in SIDES:
         builder.Connect(
             targets.GetOutputPort(f"{side}.ee_target"),
-            station.GetInputPort(StationPorts.ee_target(side)),
+            station.diagram.GetInputPort(StationPorts.ee_target(side)),
         )
     logged = {
         "estimated_keypoints": estimator.GetOutputPort("keypoints"),
@@ -352,7 +354,9 @@ def MakeImitationDiagram(
         },
     }
     if not hardware:
-        logged["true_keypoints"] = station.GetOutputPort(StationPorts.CLOTH_KEYPOINTS)
+        logged["true_keypoints"] = station.diagram.GetOutputPort(
+            StationPorts.CLOTH_KEYPOINTS
+        )
     loggers = {}
     for name, port in logged.items():
         loggers[name] = LogVectorOutput(port, builder, publish_period=dt)
@@ -368,7 +372,7 @@ def MakeImitationDiagram(
         (controller, "termination"),
     ):
         builder.ExportOutput(system.GetOutputPort(port), port)
-    recorder = AddVideoRecorder(builder, station, scenario) if video else None
+    recorder = AddVideoRecorder(builder, station) if video else None
     diagram = builder.Build()
     diagram.set_name("imitation")
     return ImitationDiagram(
@@ -430,7 +434,7 @@ def RunEpisode(
     simulator = Simulator(root or imitation.diagram)
     simulator.set_target_realtime_rate(realtime_rate)
     context = simulator.get_mutable_context()
-    InitializeStation(station, station.GetMyMutableContextFromRoot(context))
+    InitializeStation(station, station.diagram.GetMyMutableContextFromRoot(context))
     if imitation.hardware:
         # Until its first step the targets hold the grasp corners, where the
         # station's IK assumes the hands start.
@@ -441,7 +445,7 @@ def RunEpisode(
             corners["right"],
         )
     simulator.Initialize()
-    station_context = station.GetMyContextFromRoot(context)
+    station_context = station.diagram.GetMyContextFromRoot(context)
     controller_context = imitation.controller.GetMyContextFromRoot(context)
     termination = imitation.controller.GetOutputPort("termination")
     dt = imitation.step_seconds
@@ -476,7 +480,7 @@ def RunEpisode(
             if imitation.hardware:
                 from fabric_imitation.diagrams.hardware import HoldArms
 
-                HoldArms(station, station_context, imitation.scenario, imitation.lcm)
+                HoldArms(station, station_context, imitation.lcm)
                 message += "; both arms were told to hold their measured positions"
             raise KeyboardInterrupt(message) from None
         finally:
@@ -495,7 +499,7 @@ def RunEpisode(
         first_action_s=first_action_s or float("nan"),
         wall_seconds=time.perf_counter() - t0,
         error=error,
-        top_layer=None if imitation.hardware else station.handles.mesh.top_layer,
+        top_layer=None if imitation.hardware else station.mesh.top_layer,
         simulator=simulator,
     )
 

@@ -45,7 +45,7 @@ def Simulate(
     summary = {
         "scenario": scenario_name,
         "motion": motion,
-        "cloth_vertices": len(run.station.handles.mesh.vertices),
+        "cloth_vertices": len(run.station.mesh.vertices),
         "time_step": scenario.plant_config.time_step,
         "contact_approximation": scenario.plant_config.discrete_contact_approximation,
         **RunSummary(result),

@@ -14,6 +14,7 @@ from fabric_imitation.diagrams.station import (
     PEOPLE_CAMERA_SIZE,
     SIDES,
     AdvanceStationTo,
+    ClothStation,
     GraspCorners,
     InitializeStation,
     MakeClothStation,
@@ -26,7 +27,7 @@ from fabric_imitation.systems.targets import ActionPlayer, GripperTargetIntegrat
 from fabric_imitation.systems.visualization import ClothFrameRecorder, VideoRecorder
 from pydrake.geometry import Meshcat
 from pydrake.systems.analysis import Simulator
-from pydrake.systems.framework import Diagram, DiagramBuilder
+from pydrake.systems.framework import DiagramBuilder
 
 
 @dc.dataclass
@@ -46,11 +47,11 @@ class SimulationDivergedError(RuntimeError):
     """The physics engine failed or produced non-finite cloth positions."""
 
 
-def CaptureFrame(station: Diagram, station_context) -> Frame:
+def CaptureFrame(station: ClothStation, station_context) -> Frame:
     """Reads the station's camera and ground-truth ports."""
 
     def port(name):
-        return station.GetOutputPort(name).Eval(station_context)
+        return station.diagram.GetOutputPort(name).Eval(station_context)
 
     return Frame(
         time=station_context.get_time(),
@@ -66,10 +67,12 @@ def CaptureFrame(station: Diagram, station_context) -> Frame:
 VIDEO_FPS = 15.0  # frames per second of the videos for people
 
 
-def AddClothRecorder(builder, station, meshcat: Meshcat) -> ClothFrameRecorder:
+def AddClothRecorder(
+    builder, station: ClothStation, meshcat: Meshcat
+) -> ClothFrameRecorder:
     """Draws the station's cloth into a recording meshcat 16 times a second
     (Drake's own drawing of a deformable body keeps only its last shape)."""
-    mesh = station.handles.mesh
+    mesh = station.mesh
     recorder = builder.AddNamedSystem(
         "cloth_recorder",
         ClothFrameRecorder(
@@ -80,24 +83,26 @@ def AddClothRecorder(builder, station, meshcat: Meshcat) -> ClothFrameRecorder:
         ),
     )
     builder.Connect(
-        station.GetOutputPort(StationPorts.CLOTH_POSITIONS),
+        station.diagram.GetOutputPort(StationPorts.CLOTH_POSITIONS),
         recorder.GetInputPort("positions"),
     )
     return recorder
 
 
-def AddVideoRecorder(builder, station, scenario: Scenario) -> VideoRecorder:
+def AddVideoRecorder(builder, station: ClothStation) -> VideoRecorder:
     """A VideoRecorder on the station's control camera and, when the station
     has one, its people's camera, at VIDEO_FPS."""
-    cam = scenario.camera
+    cam = station.scenario.camera
     cameras = {StationPorts.RGB: (cam.width, cam.height)}
-    if station.HasOutputPort(StationPorts.PEOPLE_RGB):
+    if station.diagram.HasOutputPort(StationPorts.PEOPLE_RGB):
         cameras[StationPorts.PEOPLE_RGB] = (PEOPLE_CAMERA_SIZE, PEOPLE_CAMERA_SIZE)
     recorder = builder.AddNamedSystem(
         "video", VideoRecorder(cameras=cameras, fps=VIDEO_FPS)
     )
     for port in cameras:
-        builder.Connect(station.GetOutputPort(port), recorder.GetInputPort(port))
+        builder.Connect(
+            station.diagram.GetOutputPort(port), recorder.GetInputPort(port)
+        )
     return recorder
 
 
@@ -188,10 +193,8 @@ class OpenLoopRun:
         self.release_step = release_step
         self.step_seconds = scenario.motion.step_seconds
         builder = DiagramBuilder()
-        station = builder.AddNamedSystem(
-            "station",
-            MakeClothStation(scenario, meshcat=meshcat, people_camera=video),
-        )
+        self.station = MakeClothStation(scenario, meshcat=meshcat, people_camera=video)
+        station = builder.AddNamedSystem("station", self.station.diagram)
         integrator = builder.AddNamedSystem(
             "targets", GripperTargetIntegrator(step_seconds=self.step_seconds)
         )
@@ -215,11 +218,10 @@ class OpenLoopRun:
                 station.GetInputPort(StationPorts.ee_target(side)),
             )
         self.meshcat = meshcat
-        self.video = AddVideoRecorder(builder, station, scenario) if video else None
+        self.video = AddVideoRecorder(builder, self.station) if video else None
         if meshcat is not None:
-            AddClothRecorder(builder, station, meshcat)
+            AddClothRecorder(builder, self.station, meshcat)
         self.diagram = builder.Build()
-        self.station = station
         self.integrator = integrator
         self.simulator = Simulator(self.diagram)
         self.context = self.simulator.get_mutable_context()
@@ -230,7 +232,9 @@ class OpenLoopRun:
             corners["right"],
         )
         self.station_context = station.GetMyContextFromRoot(self.context)
-        InitializeStation(station, station.GetMyMutableContextFromRoot(self.context))
+        InitializeStation(
+            self.station, station.GetMyMutableContextFromRoot(self.context)
+        )
         self.simulator.Initialize()
 
     @property
@@ -244,10 +248,9 @@ class OpenLoopRun:
 
     def _robot_stats(self) -> None:
         """Joint-limit margin and hand tracking error of Panda arms."""
-        station = self.station
+        station, plant = self.station.diagram, self.station.plant
         if not station.HasOutputPort("left_panda.position_measured"):
             return
-        plant = station.handles.plant
         targets_context = self.integrator.GetMyContextFromRoot(self.context)
         margin, error = np.inf, 0.0
         for side in SIDES:
@@ -283,7 +286,7 @@ class OpenLoopRun:
 
     def capture_positions(self) -> np.ndarray:
         """Ground-truth cloth vertices (N, 3), without rendering."""
-        port = self.station.GetOutputPort(StationPorts.CLOTH_POSITIONS)
+        port = self.station.diagram.GetOutputPort(StationPorts.CLOTH_POSITIONS)
         return np.array(port.Eval(self.station_context)).reshape(-1, 3)
 
     def advance_to(self, t: float) -> None:
@@ -291,9 +294,9 @@ class OpenLoopRun:
             AdvanceStationTo(self.simulator, self.station, t)
         except RuntimeError as e:
             raise SimulationDivergedError(" ".join(str(e).split())[:300]) from None
-        positions = self.station.GetOutputPort(StationPorts.CLOTH_POSITIONS).Eval(
-            self.station_context
-        )
+        positions = self.station.diagram.GetOutputPort(
+            StationPorts.CLOTH_POSITIONS
+        ).Eval(self.station_context)
         if not np.all(np.isfinite(positions)):
             raise SimulationDivergedError(
                 f"non-finite cloth positions at t = {t:.2f} s"
@@ -348,7 +351,7 @@ class OpenLoopRun:
                 bar.close()
         final = self.capture()
         report = TaskSuccess(
-            self.scenario, final.positions_W, self.station.handles.mesh.top_layer
+            self.scenario, final.positions_W, self.station.mesh.top_layer
         )
         if error is not None:
             report = SuccessReport(False, {"error": error})

@@ -61,7 +61,6 @@ from pydrake.multibody.plant import (
     MultibodyPlant,
 )
 from pydrake.multibody.tree import (
-    MultibodyConstraintId,
     PdControllerGains,
     PrismaticJoint,
     SpatialInertia,
@@ -106,22 +105,31 @@ class StationPorts:
     PEOPLE_RGB = "camera.people_rgb_image"  # only with people_camera=True
 
 
-@dc.dataclass
-class ClothStationHandles:
-    """What runners need besides ports, attached to the station as `.handles`."""
+@dc.dataclass(frozen=True)
+class ClothStation:
+    """A built cloth station, as `MakeClothStation` returns it.
 
+    `diagram` is the Drake Diagram to add to a builder; its ports are named by
+    StationPorts. The other fields are what runners need besides ports. Keep
+    this object for as long as the diagram is used: it also holds objects the
+    diagram's systems refer to (`keep_alive`). On a hardware station the
+    simulation-only fields are None.
+    """
+
+    diagram: Diagram
     scenario: Scenario
-    plant: MultibodyPlant
-    mesh: ClothMesh
-    cloth_id: object  # fem: DeformableBodyId; vbd: the ClothSimulator system
-    weld_ids: list[MultibodyConstraintId]
-    clips: list  # RigidBody
-    keypoint_vertices: np.ndarray
     camera_info: CameraInfo
     X_WCamera: RigidTransform
     X_WO: RigidTransform
-    X_WCloth: RigidTransform
-    initialize: object = None  # callable(station, station_context) or None
+    plant: MultibodyPlant | None = None
+    mesh: ClothMesh | None = None
+    cloth_id: object = None  # fem: DeformableBodyId; vbd: the ClothSimulator
+    weld_ids: tuple = ()  # fem: the clip welds (MultibodyConstraintId)
+    clips: tuple = ()  # fem: the clip bodies (RigidBody)
+    X_WCloth: RigidTransform | None = None
+    initialize: object = None  # callable(diagram, diagram_context) or None
+    keep_alive: tuple = ()
+    hardware: bool = False
 
 
 _MATERIALS = {
@@ -435,8 +443,9 @@ def MakeClothStation(
     lcm=None,
     joint_commands: bool = False,
     people_camera: bool = False,
-) -> Diagram:
-    """Builds the cloth station for `scenario` (see module docstring).
+) -> ClothStation:
+    """Builds the cloth station for `scenario` (see module docstring) and
+    returns it as a ClothStation: add `.diagram` to a builder.
 
     With `hardware=True` (Panda grippers only) the same ports are made of LCM
     drivers (diagrams/hardware.py) on `lcm` (default: the scenario's bus).
@@ -560,23 +569,22 @@ def MakeClothStation(
             MeshcatVisualizerParams(role=Role.kIllustration, prefix="scene"),
         )
 
-    station = builder.Build()
-    station.set_name("cloth_station")
-    station.handles = ClothStationHandles(
+    diagram = builder.Build()
+    diagram.set_name("cloth_station")
+    return ClothStation(
+        diagram=diagram,
         scenario=scenario,
-        plant=plant,
-        mesh=mesh,
-        cloth_id=cloth_id,
-        weld_ids=weld_ids,
-        clips=clips,
-        keypoint_vertices=mesh.keypoint_vertices(NUM_KEYPOINTS),
         camera_info=camera_info,
         X_WCamera=X_WCamera,
         X_WO=X_WO,
+        plant=plant,
+        mesh=mesh,
+        cloth_id=cloth_id,
+        weld_ids=tuple(weld_ids),
+        clips=tuple(clips),
         X_WCloth=X_WC,
         initialize=initialize,
     )
-    return station
 
 
 def _wire_anchors(
@@ -604,11 +612,11 @@ def _wire_anchors(
     return measured
 
 
-def InitializeStation(station: Diagram, station_context) -> None:
+def InitializeStation(station: ClothStation, station_context) -> None:
     """Sets what a new station context needs before simulation (the Panda
     differential IK's starting joint positions); nothing for anchors."""
-    if station.handles.initialize is not None:
-        station.handles.initialize(station, station_context)
+    if station.initialize is not None:
+        station.initialize(station.diagram, station_context)
 
 
 def _add_camera(builder: DiagramBuilder, scenario: Scenario, scene_graph):
@@ -710,39 +718,38 @@ def CameraModelFromConfig(config):
     )
 
 
-def _welded(station: Diagram, root_context) -> bool:
-    handles = getattr(station, "handles", None)
-    if handles is None or not getattr(handles, "weld_ids", None):
+def _welded(station: ClothStation, root_context) -> bool:
+    if not station.weld_ids:
         return False
-    plant_context = handles.plant.GetMyContextFromRoot(root_context)
+    plant_context = station.plant.GetMyContextFromRoot(root_context)
     return any(
-        handles.plant.GetConstraintActiveStatus(plant_context, weld)
-        for weld in handles.weld_ids
+        station.plant.GetConstraintActiveStatus(plant_context, weld)
+        for weld in station.weld_ids
     )
 
 
-def ApplyRelease(station: Diagram, root_context) -> bool:
+def ApplyRelease(station: ClothStation, root_context) -> bool:
     """Opens the FEM clip welds once the station's `released` output is on;
     returns whether the grasps are open. Changes plant parameters, so call it
     only between `AdvanceTo` calls (`AdvanceStationTo` does)."""
-    handles = station.handles
-    station_context = station.GetMyContextFromRoot(root_context)
-    if station.GetOutputPort(StationPorts.RELEASED).Eval(station_context)[0] <= 0.5:
+    diagram, plant = station.diagram, station.plant
+    station_context = diagram.GetMyContextFromRoot(root_context)
+    if diagram.GetOutputPort(StationPorts.RELEASED).Eval(station_context)[0] <= 0.5:
         return False
-    plant_context = handles.plant.GetMyMutableContextFromRoot(root_context)
-    for weld, clip in zip(handles.weld_ids, handles.clips, strict=True):
-        if handles.plant.GetConstraintActiveStatus(plant_context, weld):
-            handles.plant.SetConstraintActiveStatus(plant_context, weld, False)
+    plant_context = plant.GetMyMutableContextFromRoot(root_context)
+    for weld, clip in zip(station.weld_ids, station.clips, strict=True):
+        if plant.GetConstraintActiveStatus(plant_context, weld):
+            plant.SetConstraintActiveStatus(plant_context, weld, False)
             clip.SetSpatialInertiaInBodyFrame(
                 plant_context,
                 SpatialInertia.SolidSphereWithMass(
-                    handles.scenario.grippers.clip_mass, CLIP_RADIUS
+                    station.scenario.grippers.clip_mass, CLIP_RADIUS
                 ),
             )
     return True
 
 
-def AdvanceStationTo(simulator: Simulator, station: Diagram, t: float) -> None:
+def AdvanceStationTo(simulator: Simulator, station: ClothStation, t: float) -> None:
     """`simulator.AdvanceTo(t)` for a diagram holding `station`.
 
     While the FEM cloth's clip welds are on, it advances one plant step at a
@@ -754,7 +761,7 @@ def AdvanceStationTo(simulator: Simulator, station: Diagram, t: float) -> None:
     if not _welded(station, root):
         simulator.AdvanceTo(t)
         return
-    h = station.handles.plant.time_step()
+    h = station.plant.time_step()
     while root.get_time() < t - 1e-12:
         simulator.AdvanceTo(min(t, root.get_time() + h))
         if ApplyRelease(station, root):

@@ -184,9 +184,8 @@ class Mpc:
         cfg = self.config
         out = []
         s = S[None]
-        for _ in range(cfg.horizon):
-            J, _ = self.demo.progress(s, window)
-            goal = self.demo.states[(J + 1).clamp(max=self.demo.T - 1)]
+        for i in range(cfg.horizon):
+            goal = self.subgoal(s, window, i)
             if cfg.prior == "grasp":
                 i1, i2 = self.demo.grasped
                 a = torch.cat([goal[:, i1] - s[:, i1], goal[:, i2] - s[:, i2]], -1)
@@ -201,6 +200,30 @@ class Mpc:
             out.append(a[0])
             s = self._predict(s, a)
         return torch.stack(out)
+
+    def subgoal(self, s: torch.Tensor, window, i: int) -> torch.Tensor:
+        """The demo state (B, M, 3) the action prior heads for from the
+        imagined states s (B, M, 3) at horizon step i: the one after the
+        progress J of s."""
+        J, _ = self.demo.progress(s, window)
+        return self.demo.states[(J + 1).clamp(max=self.demo.T - 1)]
+
+    def current_progress(self, S, step: int, previous_progress: int | None) -> int:
+        """The demo step J that state S (M, 3) matches, searched in
+        [J - progress_lag, J + progress_lead] of the last step's J."""
+        cfg = self.config
+        search = None
+        if previous_progress is not None and cfg.progress_lead >= 0:
+            search = (
+                max(0, previous_progress - cfg.progress_lag),
+                min(self.demo.T, previous_progress + cfg.progress_lead + 1),
+            )
+        J0, _ = self.demo.progress(S[None], search)
+        return int(J0[0])
+
+    def finished(self, S, steps: int) -> bool:
+        """The termination classifier on state S (M, 3)."""
+        return bool(self.demo.done(S))
 
     def _nearest_valid(self, s, a, gen) -> torch.Tensor:
         cfg = self.config
@@ -277,14 +300,7 @@ class Mpc:
             # The rules' world-frame parts (workspace box) follow the object.
             self.ctx = dc.replace(self.ctx, frame_pose=np.asarray(frame_pose, float))
         S = torch.as_tensor(S, dtype=torch.float32)
-        search = None
-        if previous_progress is not None and cfg.progress_lead >= 0:
-            search = (
-                max(0, previous_progress - cfg.progress_lag),
-                min(self.demo.T, previous_progress + cfg.progress_lead + 1),
-            )
-        J0, _ = self.demo.progress(S[None], search)
-        J0 = int(J0[0])
+        J0 = self.current_progress(S, step, previous_progress)
         window = self._window(J0)
         gen = torch.Generator().manual_seed(seed * 100003 + step)
         prior = (

@@ -7,13 +7,14 @@ or an object frame); f_D and f_I work in each state's canonical frame
 """
 
 import dataclasses as dc
-import json
-import pickle
 from pathlib import Path
 
 import numpy as np
 import torch
-from fabric_imitation.learning.demo_io import FileSha256
+from fabric_imitation.learning.checkpoint import (
+    ReadTensorCheckpoint,
+    WriteTensorCheckpoint,
+)
 from fabric_imitation.learning.errors import InputError
 from fabric_imitation.learning.geometry import (
     PinholeCamera,
@@ -156,8 +157,6 @@ class Priors:
         """Writes `directory`/priors.pt (tensors) and priors.json (the rest:
         config, and `extra`'s JSON values; its tensors go to priors.pt).
         Returns the JSON path. Both files appear whole or not at all."""
-        directory = Path(directory)
-        directory.mkdir(parents=True, exist_ok=True)
         tensors = {}
         for name in ("f_R", "f_D", "f_I"):
             for key, value in getattr(self, name).state_dict().items():
@@ -171,25 +170,19 @@ class Priors:
                 tensors[key] = value.detach().cpu().contiguous()
             else:
                 metadata[key] = value
-        path = directory / CHECKPOINT_FILE
-        tmp = path.with_name(path.name + ".partial")
-        torch.save(tensors, tmp)
-        description = {
-            "format": CHECKPOINT_FORMAT,
-            "version": CHECKPOINT_VERSION,
-            "config": self.config,
-            "norms": sorted(self.norms),
-            "metadata": metadata,
-            "tensors": {"file": CHECKPOINT_FILE, "sha256": FileSha256(tmp)},
-        }
-        json_path = directory / CHECKPOINT_JSON
-        json_tmp = json_path.with_name(json_path.name + ".partial")
-        json_tmp.write_text(
-            json.dumps(description, indent=1, default=lambda o: o.item())
+        return WriteTensorCheckpoint(
+            directory,
+            json_name=CHECKPOINT_JSON,
+            tensors_name=CHECKPOINT_FILE,
+            tensors=tensors,
+            description={
+                "format": CHECKPOINT_FORMAT,
+                "version": CHECKPOINT_VERSION,
+                "config": self.config,
+                "norms": sorted(self.norms),
+                "metadata": metadata,
+            },
         )
-        tmp.replace(path)
-        json_tmp.replace(json_path)
-        return json_path
 
 
 def _batch_images(x) -> torch.Tensor:
@@ -229,69 +222,16 @@ def load_priors(
         InputError: missing or corrupt file, another format or version, a
             checksum mismatch, a tensors file that needs pickle, a mismatch.
     """
-    path = Path(path)
-    if not path.exists():
-        raise InputError(f"priors checkpoint not found: {path}")
-    directory = path if path.is_dir() else path.parent
-    file = directory / CHECKPOINT_JSON
-    if not file.is_file():
-        if (directory / CHECKPOINT_FILE).is_file():
-            raise InputError(
-                f"priors {directory} have no {CHECKPOINT_JSON}: an old pickled "
-                "checkpoint, not loaded because unpickling can run code; "
-                "retrain with `fabric-imitate train`"
-            )
-        raise InputError(f"priors checkpoint not found: {file}")
-    try:
-        description = json.loads(file.read_text())
-    except (json.JSONDecodeError, UnicodeDecodeError):
-        raise InputError(f"priors checkpoint {file} is corrupt (not JSON)") from None
-    if (
-        not isinstance(description, dict)
-        or description.get("format") != CHECKPOINT_FORMAT
-        or description.get("version") != CHECKPOINT_VERSION
-    ):
-        raise InputError(
-            f"{file} is not a {CHECKPOINT_FORMAT} checkpoint of version "
-            f"{CHECKPOINT_VERSION}"
-        )
-    manifest = directory / "manifest.json"
-    if manifest.is_file():  # shipped priors list their files' checksums
-        try:
-            listed = json.loads(manifest.read_text()).get("files", {})
-        except (json.JSONDecodeError, UnicodeDecodeError, AttributeError):
-            raise InputError(f"priors {manifest} is corrupt") from None
-        for name, digest in listed.items():
-            f = directory / name
-            if not f.is_file() or FileSha256(f) != digest:
-                raise InputError(
-                    f"priors {f} is missing, truncated or changed (checksum "
-                    f"mismatch with {manifest.name})"
-                )
-    tensors_file = directory / description["tensors"]["file"]
-    if not tensors_file.is_file():
-        raise InputError(f"priors checkpoint {file}: {tensors_file.name} is missing")
-    if FileSha256(tensors_file) != description["tensors"]["sha256"]:
-        raise InputError(
-            f"priors {tensors_file} is truncated or changed (checksum mismatch)"
-        )
-    try:
-        tensors = torch.load(tensors_file, map_location="cpu", weights_only=True)
-    except pickle.UnpicklingError as e:
-        raise InputError(
-            f"priors {tensors_file} hold more than tensors (refused: loading "
-            f"them would need pickle, which can run code): "
-            f"{' '.join(str(e).split())[:100]}"
-        ) from None
-    except Exception as e:  # noqa: BLE001 (any other failure is a bad file)
-        raise InputError(
-            f"priors checkpoint {tensors_file} is corrupt: "
-            f"{' '.join(str(e).split())[:150]}"
-        ) from None
-    if not isinstance(tensors, dict) or not all(
-        isinstance(v, torch.Tensor) for v in tensors.values()
-    ):
-        raise InputError(f"priors {tensors_file} is not a dictionary of tensors")
+    description, tensors, file = ReadTensorCheckpoint(
+        path,
+        json_name=CHECKPOINT_JSON,
+        tensors_name=CHECKPOINT_FILE,
+        fmt=CHECKPOINT_FORMAT,
+        version=CHECKPOINT_VERSION,
+        what="priors",
+        retrain="retrain with `fabric-imitate train`",
+    )
+    tensors_file = file.parent / description["tensors"]["file"]
     blob = {
         "config": description["config"],
         "norms": {

@@ -149,9 +149,10 @@ class StepController(LeafSystem):
     of `MpcController` and `ReplayController`, which give the same outputs,
     so runners and scoring treat them alike.
 
-    Subclasses implement `Finished(S)` (a termination code or None, checked
-    before the step cap) and `Decide(context, S, pose, steps, progress) ->
-    (code, action_O or None, progress, iterations)`: a termination code
+    Subclasses implement `Finished(S, steps)` (a termination code or None,
+    checked before the step cap) and `Decide(context, S, pose, steps,
+    progress) -> (code, action_O or None, progress, iterations[, memory])`:
+    a termination code
     (RUNNING to act), the move in the object frame, the demo step matched
     and the iterations spent. At the step cap the episode ends. After the
     end (release, zero action) the grippers lift `retreat_step` metres in
@@ -197,6 +198,7 @@ class StepController(LeafSystem):
                 ("solve_ms", 1),
                 ("iterations", 1),
                 ("retreated", 1),  # lifting steps taken after the release
+                ("memory", 1),  # a subclass's own count (ZeroController)
             )
         }
         self.DeclarePeriodicDiscreteUpdateEvent(period, offset, self._update)
@@ -206,9 +208,9 @@ class StepController(LeafSystem):
     def _get(self, context, name: str) -> np.ndarray:
         return context.get_discrete_state(self._state[name]).value()
 
-    def Finished(self, S) -> int | None:
-        """A termination code if the task is done in state S (checked before
-        the step cap), else None."""
+    def Finished(self, S, steps: int) -> int | None:
+        """A termination code if the task is done in state S after `steps`
+        actions (checked before the step cap), else None."""
         return None
 
     def Decide(self, context, S, pose: PlanarPose, steps: int, progress: int):
@@ -235,13 +237,15 @@ class StepController(LeafSystem):
         progress = int(self._get(context, "progress")[0])
         action_W = np.zeros(6)
         iterations = 0
-        code = self.Finished(S)
+        code = self.Finished(S, steps)
         if code is None and steps >= self._cap:
             code = TERMINATED_STEP_CAP
         if code is None:
-            code, action_O, progress, iterations = self.Decide(
+            code, action_O, progress, iterations, *memory = self.Decide(
                 context, S, pose, steps, progress
             )
+            if memory:
+                put("memory", memory[0])
             if code == RUNNING:
                 action_W = pose.vector_to_world(np.reshape(action_O, (2, 3))).ravel()
                 steps += 1
@@ -266,8 +270,8 @@ class MpcController(StepController):
         self._mpc = mpc
         self._seed = seed
 
-    def Finished(self, S) -> int | None:
-        return TERMINATED_CLASSIFIER if bool(self._mpc.demo.done(S)) else None
+    def Finished(self, S, steps) -> int | None:
+        return TERMINATED_CLASSIFIER if self._mpc.finished(S, steps) else None
 
     def Decide(self, context, S, pose, steps, progress):
         result = self._mpc.solve(
@@ -320,3 +324,47 @@ class ReplayController(StepController):
         action = np.clip(gap, -self._max_step, self._max_step)
         reached = np.abs(gap).max() <= self._max_step + 1e-6
         return RUNNING, action, min(k + 1, last) if reached else k, 0
+
+
+class ZeroController(StepController):
+    """The Zero baseline (learning/baselines.py `ZeroFollower`): the goal-
+    conditioned inverse model towards the demo's states one after another
+    (see StepController for ports and the step cap). ``progress`` is the
+    subgoal; the steps spent on it are kept in the ``memory`` state."""
+
+    def __init__(self, *, follower, **kwargs):
+        super().__init__(**kwargs)
+        self._follower = follower
+
+    def Decide(self, context, S, pose, steps, progress):
+        tries = int(self._get(context, "memory")[0])
+        action, j, tries = self._follower.decide(S, progress, tries)
+        if action is None:
+            return TERMINATED_CLASSIFIER, None, j, 0, 0
+        return RUNNING, action.numpy(), j, 0, tries
+
+
+class CfmController(StepController):
+    """The CFM baseline (learning/baselines.py `CfmPlanner`): one-step
+    model-predictive control in the contrastive latent space (see
+    StepController for ports and the step cap); ``iterations`` reports the
+    number of valid sampled actions."""
+
+    def __init__(self, *, planner, seed: int = 0, **kwargs):
+        super().__init__(**kwargs)
+        self._planner = planner
+        self._seed = seed
+
+    def Decide(self, context, S, pose, steps, progress):
+        action, J, valid = self._planner.decide(
+            S, progress, np.array(pose), self._seed * 100003 + steps
+        )
+        if action is None:
+            done = J >= self._planner.T - 1  # else no valid action was found
+            return (
+                TERMINATED_CLASSIFIER if done else TERMINATED_INFEASIBLE,
+                None,
+                J,
+                valid,
+            )
+        return RUNNING, action.numpy(), J, valid

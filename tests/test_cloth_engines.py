@@ -53,7 +53,7 @@ def test_state_lives_in_the_context():
 def test_runaway_cloth_is_a_clear_error_naming_the_engine_and_time():
     scenario = LoadScenario(scenario_name="prior", scenario_text=SMALL_CLOTH)
     run = OpenLoopRun(scenario, actions=np.zeros((2, 6)), release_step=None)
-    cloth = run.station.GetSubsystemByName("vbd_cloth")
+    cloth = run.station.diagram.GetSubsystemByName("vbd_cloth")
     context = cloth.GetMyMutableContextFromRoot(run.context)
     x = context.get_discrete_state(0).get_value().copy()
     x[-1] = 1.0e4  # a far-corner particle flying up at 10 km/s
@@ -62,7 +62,7 @@ def test_runaway_cloth_is_a_clear_error_naming_the_engine_and_time():
         run.advance_to(0.05)
     # A run reports it instead of raising.
     result = OpenLoopRun(scenario, actions=np.zeros((1, 6)), release_step=1)
-    cloth = result.station.GetSubsystemByName("vbd_cloth")
+    cloth = result.station.diagram.GetSubsystemByName("vbd_cloth")
     cloth_context = cloth.GetMyMutableContextFromRoot(result.context)
     cloth_context.SetDiscreteState(0, x)
     done = result.run(capture_frames=False)

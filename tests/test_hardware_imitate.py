@@ -61,13 +61,14 @@ def test_imitate_on_lcm_drivers_covers_the_box_in_the_simulated_lab():
     assert "none on hardware" in summary["ground_truth"]
     assert summary["steps"] >= 10
     # Judged afterwards on the lab's true cloth, which the imitation never read.
-    context = lab_station.GetMyContextFromRoot(run.simulator.get_context())
+    station = lab_station.diagram
+    context = station.GetMyContextFromRoot(run.simulator.get_context())
     positions = np.array(
-        lab_station.GetOutputPort(StationPorts.CLOTH_POSITIONS).Eval(context)
+        station.GetOutputPort(StationPorts.CLOTH_POSITIONS).Eval(context)
     ).reshape(-1, 3)
-    report = TaskSuccess(scenario, positions, lab_station.handles.mesh.top_layer)
+    report = TaskSuccess(scenario, positions, lab_station.mesh.top_layer)
     assert report.success, report.details
-    released = lab_station.GetOutputPort(StationPorts.RELEASED).Eval(context)
+    released = station.GetOutputPort(StationPorts.RELEASED).Eval(context)
     assert released[0] == 1.0  # the hand open commands reached the lab
 
 

@@ -36,23 +36,24 @@ def port_names(system):
 
 def test_simulated_and_hardware_stations_export_the_same_ports():
     s = scenario("box_panda")
-    sim = MakeClothStation(s)
-    hardware = MakeClothStation(s, hardware=True, lcm=DrakeLcm("memq://"))
+    sim = MakeClothStation(s).diagram
+    hardware = MakeClothStation(s, hardware=True, lcm=DrakeLcm("memq://")).diagram
     assert port_names(sim) == port_names(hardware)
-    anchors = MakeClothStation(scenario("box"))
+    anchors = MakeClothStation(scenario("box")).diagram
     # The anchor station's ports are a subset: every controller works with both.
     assert port_names(anchors)[0] == port_names(sim)[0]
     assert port_names(anchors)[1] <= port_names(sim)[1]
 
 
 class Rig:
-    def __init__(self, diagram, station):
-        self.diagram, self.station = diagram, station
+    def __init__(self, diagram, built):
+        self.diagram, self.built, self.station = diagram, built, built.diagram
         self.simulator = Simulator(diagram)
         self.context = self.simulator.get_mutable_context()
+        station = self.station
         self.station_context = station.GetMyMutableContextFromRoot(self.context)
-        InitializeStation(station, self.station_context)
-        self.corners = GraspCorners(station.handles.scenario)
+        InitializeStation(built, self.station_context)
+        self.corners = GraspCorners(built.scenario)
         station.GetInputPort("release").FixValue(self.station_context, [0.0])
         self.target(np.zeros(3))
 
@@ -70,16 +71,15 @@ class Rig:
 
 def sim_rig():
     station = MakeClothStation(scenario())
-    return Rig(station, station)
+    return Rig(station.diagram, station)
 
 
 def lcm_rig():
     s = scenario()
     lcm = DrakeLcm("memq://")
     builder = DiagramBuilder()
-    station = builder.AddNamedSystem(
-        "station", MakeClothStation(s, hardware=True, lcm=lcm)
-    )
+    station = MakeClothStation(s, hardware=True, lcm=lcm)
+    builder.AddNamedSystem("station", station.diagram)
     builder.AddNamedSystem("lab", MakeSimulatedLab(s, lcm=lcm)[0])
     return Rig(builder.Build(), station)
 
@@ -99,7 +99,7 @@ def test_hands_follow_a_10cm_target_step_within_5mm(make):
 
 def test_joint_limits_hold_for_200_random_targets(rng):
     rig = sim_rig()
-    plant = rig.station.handles.plant
+    plant = rig.built.plant
     limits = {}
     for side in SIDES:
         instance = plant.GetModelInstanceByName(f"{side}_panda")
@@ -144,7 +144,7 @@ def test_missing_driver_messages_time_out_with_a_clear_error():
     station = MakeClothStation(
         scenario("box_panda"), hardware=True, lcm=DrakeLcm("memq://")
     )
-    rig = Rig(station, station)
+    rig = Rig(station.diagram, station)
     with pytest.raises(RuntimeError, match="no lcmt_panda_status on PANDA_LEFT_STATUS"):
         rig.simulator.AdvanceTo(2.0)
 
@@ -180,9 +180,10 @@ def test_demo_record_with_pandas_succeeds(tmp_path, name):
 def test_the_cameras_see_the_arms():
     from fabric_imitation.diagrams.panda import ARM_LABEL
 
-    station = MakeClothStation(scenario("box_panda"))
+    built = MakeClothStation(scenario("box_panda"))
+    station = built.diagram
     context = station.CreateDefaultContext()
-    InitializeStation(station, context)
+    InitializeStation(built, context)
     label = np.array(station.GetOutputPort("camera.label_image").Eval(context).data)
     # The hands above the grasped corners cover part of the cloth, as on a
     # real camera (the .dae visuals alone would be skipped by the renderer).

@@ -42,7 +42,8 @@ class Rig:
         self.scenario = LoadScenario(
             scenario_name=name, scenario_text=SmallCloth(engine)
         )
-        self.station = MakeClothStation(self.scenario)
+        self.built = MakeClothStation(self.scenario)
+        self.station = self.built.diagram
         self.simulator = Simulator(self.station)
         self.context = self.simulator.get_mutable_context()
         self.corners = GraspCorners(self.scenario)
@@ -60,7 +61,7 @@ class Rig:
             )
 
     def advance_to(self, t):
-        AdvanceStationTo(self.simulator, self.station, t)
+        AdvanceStationTo(self.simulator, self.built, t)
 
     def release(self, on=True):
         self.station.GetInputPort("release").FixValue(self.context, [float(on)])
@@ -82,7 +83,7 @@ class Rig:
 def test_station_exports_the_documented_ports(engine):
     station = MakeClothStation(
         LoadScenario(scenario_name="box", scenario_text=SmallCloth(engine))
-    )
+    ).diagram
     inputs = {
         station.get_input_port(i).get_name() for i in range(station.num_input_ports())
     }
@@ -146,8 +147,8 @@ def test_fabric_mask_matches_the_projected_cloth(engine):
     rig = Rig(engine=engine)
     rig.lift(0.08)
     mask = rig.port(StationPorts.MASK).data[:, :, 0] > 0
-    info = rig.station.handles.camera_info
-    X_CW = rig.station.handles.X_WCamera.inverse()
+    info = rig.built.camera_info
+    X_CW = rig.built.X_WCamera.inverse()
     K = np.array(
         [
             [info.focal_x(), 0, info.center_x()],
@@ -160,7 +161,7 @@ def test_fabric_mask_matches_the_projected_cloth(engine):
     )[:3].T
     uv = (p_C @ K.T)[:, :2] / p_C[:, 2:3]
     truth = np.zeros(mask.shape, np.uint8)
-    tris = TopTriangles(rig.station.handles.mesh.top_layer)
+    tris = TopTriangles(rig.built.mesh.top_layer)
     for t in tris:
         cv2.fillPoly(truth, [np.round(uv[t] * 16).astype(np.int32)], 1, shift=4)
     truth = truth > 0
