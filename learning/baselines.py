@@ -29,7 +29,6 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from torch.nn import functional as F  # noqa: N812 (torch's own idiom)
 from fabric_imitation.learning.checkpoint import (
     ReadTensorCheckpoint,
     WriteTensorCheckpoint,
@@ -44,6 +43,7 @@ from fabric_imitation.learning.models import Mlp
 from fabric_imitation.learning.mpc import Mpc
 from fabric_imitation.learning.priors import Normalizer
 from fabric_imitation.learning.safety import valid_actions
+from torch.nn import functional as F  # noqa: N812 (torch's own idiom)
 
 BASELINES = ("zero", "cfm", "tcn")
 FORMAT = "fabric-imitation-baselines"
