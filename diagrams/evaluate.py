@@ -17,16 +17,25 @@ from pathlib import Path
 import numpy as np
 from fabric_imitation.learning.errors import InputError
 
+# Method -> (controller of MakeImitationDiagram, changes to the scenario's
+# MPC settings).
 METHODS = {
-    "ours": {},
-    "no_mpc": {"use_mpc": False},
-    "no_prior": {"use_prior": False},
-    "no_cost": {"use_cost": False},
+    "ours": ("mpc", {}),
+    # The ablations (paper Table I): each changes only the switch it names.
+    "no_mpc": ("mpc", {"use_mpc": False}),
+    "no_prior": ("mpc", {"use_prior": False}),
+    "no_cost": ("mpc", {"use_cost": False}),
+    # The baselines (learning/baselines.py), trained by
+    # `fabric-imitate train-baselines` on the same prior dataset.
+    "zero": ("zero", {}),
+    "cfm": ("cfm", {}),
+    "tcn": ("tcn", {}),
     # Replay: the demo's grasped-corner path (f_R on its frames) followed in
     # the object frame of the trial; no learning beyond f_R.
-    "replay": "replay",
-    "scripted": None,  # the scripted demonstration at the trial's pose
+    "replay": ("replay", {}),
+    "scripted": (None, {}),  # the scripted demonstration at the trial's pose
 }
+BASELINE_METHODS = ("zero", "cfm", "tcn")
 
 
 # Protocol -> (largest move of the object [m], largest turn [deg]) away
@@ -139,6 +148,7 @@ def _prepare(job: dict):
         scenario,
         demo_dir=job.get("demo") or DefaultDemoDir(job["scenario"], scenario),
         priors_dir=job.get("priors"),
+        baselines=job.get("baselines", False),
     )
 
 
@@ -164,17 +174,22 @@ def _run_trial(job: dict) -> dict:
     else:
         from fabric_imitation.diagrams.imitation import Imitate
 
-        summary = Imitate(
-            scenario=scenario,
-            scenario_name=job["scenario"],
-            prepared=_PREPARED[job["scenario"]],
-            mpc_config=None
-            if job["method"] == "replay"
-            else dc.replace(scenario.mpc, **METHODS[job["method"]]),
-            controller="replay" if job["method"] == "replay" else "mpc",
-            progress=False,
-            seed=job["trial"],
-        )
+        controller, changes = METHODS[job["method"]]
+        try:
+            summary = Imitate(
+                scenario=scenario,
+                scenario_name=job["scenario"],
+                prepared=_PREPARED[job["scenario"]],
+                mpc_config=dc.replace(scenario.mpc, **changes),
+                controller=controller,
+                progress=False,
+                seed=job["trial"],
+            )
+        except Exception as e:  # noqa: BLE001 (one failed trial; the sweep goes on)
+            summary = {
+                "success": False,
+                "error": f"{type(e).__name__}: {' '.join(str(e).split())[:300]}",
+            }
     return {**job, **summary, "trial_seconds": round(time.perf_counter() - t0, 1)}
 
 
@@ -187,7 +202,12 @@ def _aggregate(rows: list[dict]) -> dict:
         "successes": int(sum(ok)),
         "success_rate": round(float(np.mean(ok)), 3) if rows else None,
     }
-    if rows and "final_iou" in rows[0]:
+    # Rows of trials that crashed (an exception in the trial, recorded as a
+    # failure) carry no episode figures.
+    crashed = [r for r in rows if "final_iou" not in r and "termination" not in r]
+    if len(crashed) < len(rows) and any("final_iou" in r for r in rows):
+        out["crashed"] = len(crashed)
+        rows = [r for r in rows if r not in crashed]
         ious = np.array([r["final_iou"] for r in rows])
         ch = np.array([r["final_chamfer"] for r in rows])
         out.update(
@@ -276,6 +296,7 @@ def Evaluate(
                             "priors": str(priors) if priors else None,
                             "scenario_text": scenario_text,
                             "protocol": protocol,
+                            "baselines": any(m in BASELINE_METHODS for m in methods),
                         }
                     )
     # Learn from each scenario's demo once (f_R on its frames, f_A), here,

@@ -66,11 +66,13 @@ from fabric_imitation.scenarios.schema import Scenario
 from fabric_imitation.systems.imitation import (
     RUNNING,
     TERMINATION_NAMES,
+    CfmController,
     DemoReward,
     KeypointEstimator,
     MpcController,
     PlanarPoseVector,
     ReplayController,
+    ZeroController,
 )
 from fabric_imitation.systems.targets import GripperTargetIntegrator
 from fabric_imitation.systems.visualization import VideoRecorder
@@ -135,6 +137,9 @@ class PreparedImitation:
     model: DemoModel  # demo states + f_A + termination classifier
     registration: dict  # f_A training summary
     seconds: float  # wall time of the preparation
+    # With baselines=True: the Zero/CFM/TCN networks, TCN also trained on
+    # this demo (learning/baselines.py).
+    baselines: object | None = None
 
 
 def PrepareImitation(
@@ -142,9 +147,12 @@ def PrepareImitation(
     *,
     demo_dir: Path,
     priors_dir: Path | None = None,
+    baselines: bool = False,
 ) -> PreparedImitation:
     """Loads the priors and the demo, checks they fit `scenario` (task,
-    camera), runs f_R on the demo's frames and trains f_A."""
+    camera), runs f_R on the demo's frames and trains f_A; with `baselines`
+    also loads the baselines' networks from the priors directory and trains
+    TCN on the demo's states."""
     if scenario.task == "prior":
         raise InputError("the prior scene has no task to imitate; use box, hang, ...")
     t0 = time.perf_counter()
@@ -172,6 +180,16 @@ def PrepareImitation(
         raise InputError(f"priors {priors_dir} carry no prior states for f_A")
     states = DemoStates(priors, demo)
     model, info = learn_from_demo(states, priors.prior_states, scenario.reward)
+    nets = None
+    if baselines:
+        from fabric_imitation.learning.baselines import (
+            BaselineTrainConfig,
+            load_baselines,
+        )
+
+        nets = load_baselines(priors_dir, num_keypoints=NUM_KEYPOINTS)
+        nets, seconds = nets.tcn_on_demo(states, BaselineTrainConfig(**nets.config))
+        info = {**info, "tcn_on_demo_seconds": round(seconds, 2)}
     return PreparedImitation(
         demo=demo,
         priors=priors,
@@ -179,6 +197,7 @@ def PrepareImitation(
         model=model,
         registration=info,
         seconds=time.perf_counter() - t0,
+        baselines=nets,
     )
 
 
@@ -224,9 +243,11 @@ def MakeImitationDiagram(
     images, the gripper targets start from the measured hands at that step,
     and nothing reads simulation ground truth.
 
-    `controller`: "mpc" (the method) or "replay" (the Replay baseline: the
+    `controller`: "mpc" (the method), "replay" (the Replay baseline: the
     demo's grasped-corner path followed in the object frame of now,
-    `ReplayController`).
+    `ReplayController`), or "zero", "cfm", "tcn" (the baselines of
+    learning/baselines.py; `prepared` must have been made with
+    `baselines=True`).
 
     With `video=True` a `VideoRecorder` keeps the control camera's images
     and (simulation) an oblique people's camera's at VIDEO_FPS."""
@@ -263,23 +284,52 @@ def MakeImitationDiagram(
     reward = builder.AddNamedSystem(
         "demo_reward", DemoReward(demo=demo, num_keypoints=m)
     )
-    mpc = Mpc(
+    if controller in ("zero", "cfm", "tcn") and prepared.baselines is None:
+        raise InputError(
+            f"controller {controller!r} needs PrepareImitation(..., baselines=True)"
+        )
+    mpc_args = dict(
         dynamics=priors,
         demo=demo,
         safety=scenario.safety,
         safety_ctx=ObjectSafetyContext(scenario, estimated=True),
         config=cfg,
     )
+    if controller == "tcn":
+        from fabric_imitation.learning.baselines import TcnMpc
+
+        mpc = TcnMpc(baselines=prepared.baselines, **mpc_args)
+    else:
+        mpc = Mpc(**mpc_args)
     timing = dict(
         num_keypoints=m,
         period=dt,
         offset=start + EVENT_STAGGER,
         step_cap=int(cfg.step_cap_factor * demo.T) + 5,
     )
-    if controller == "mpc":
-        system = MpcController(
-            mpc=mpc, seed=scenario.random_seed if seed is None else seed, **timing
+    seed = scenario.random_seed if seed is None else seed
+    if controller in ("mpc", "tcn"):
+        system = MpcController(mpc=mpc, seed=seed, **timing)
+    elif controller == "zero":
+        from fabric_imitation.learning.baselines import ZeroFollower
+
+        follower = ZeroFollower(
+            prepared.baselines,
+            prepared.demo_states,
+            max_step=scenario.safety.max_step,
         )
+        system = ZeroController(follower=follower, **timing)
+    elif controller == "cfm":
+        from fabric_imitation.learning.baselines import CfmPlanner
+
+        planner = CfmPlanner(
+            prepared.baselines,
+            prepared.demo_states,
+            safety=scenario.safety,
+            safety_ctx=ObjectSafetyContext(scenario, estimated=True),
+            num_samples=cfg.num_samples,
+        )
+        system = CfmController(planner=planner, seed=seed, **timing)
     elif controller == "replay":
         corners = corner_indices(m)
         path = prepared.demo_states[:, [corners["s1"], corners["s2"]]]
@@ -287,7 +337,9 @@ def MakeImitationDiagram(
             path=path, max_step=scenario.safety.max_step, **timing
         )
     else:
-        raise InputError(f"unknown controller {controller!r}; use mpc or replay")
+        raise InputError(
+            f"unknown controller {controller!r}; use mpc, replay, zero, cfm or tcn"
+        )
     controller = builder.AddNamedSystem("controller", system)
     targets = builder.AddNamedSystem(
         "targets",
