@@ -384,6 +384,16 @@ def Evaluate(
     }
     Path(str(out) + ".summary.json").write_text(json.dumps(summary, indent=1))
     _plot(table, Path(str(out) + ".png"))
+    cells = {
+        (name, method): [
+            r
+            for (s, m, _), r in sorted(done.items())
+            if s == name and m == method and r["trial"] < trials
+        ]
+        for name in scenario_names
+        for method in methods
+    }
+    _plot_curves(cells, Path(str(out) + ".curves.png"))
     Path(str(out) + ".md").write_text(ResultsMarkdown(summary))
     return summary
 
@@ -442,6 +452,75 @@ def _plot(table: dict, path: Path) -> None:
     ax.set_ylabel("success rate")
     ax.set_ylim(0, 1)
     ax.legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=90)
+    plt.close(fig)
+
+
+# The accumulated return of Fig. 8 c-d: the paper gives "a positive reward
+# for episodic success and a negative warning reward" for each action that
+# breaks a safety rule, without values; these are ours.
+SUCCESS_REWARD = 10.0
+WARNING_REWARD = -1.0
+
+
+def EpisodeReturns(row: dict) -> np.ndarray:
+    """Accumulated return after each executed action of one trial:
+    WARNING_REWARD for each action that broke a rule on the true cloth,
+    SUCCESS_REWARD at the last action if the trial succeeded."""
+    n = max(int(row.get("steps") or 0), 1)
+    r = np.zeros(n)
+    for k in row.get("true_rule_break_steps") or []:
+        r[min(k, n - 1)] += WARNING_REWARD
+    if row.get("success"):
+        r[-1] += SUCCESS_REWARD
+    return np.cumsum(r)
+
+
+def _padded_mean(series: list) -> np.ndarray:
+    """Mean over trials of series of different lengths, each held at its
+    last value after it ends (an episode that ended stays where it ended)."""
+    n = max(len(x) for x in series)
+    return np.mean([np.r_[x, np.full(n - len(x), x[-1])] for x in series], 0)
+
+
+def _plot_curves(cells: dict, path: Path) -> None:
+    """Per task: the mean Chamfer distance to the demo's last frame before
+    each control step (Fig. 8 a-b) and the mean accumulated return (Fig. 8
+    c-d) of each method."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    names = sorted({name for name, _ in cells})
+    fig, axes = plt.subplots(
+        2, len(names), figsize=(4.5 * len(names), 6), squeeze=False
+    )
+    for col, name in enumerate(names):
+        for (task, method), rows in cells.items():
+            if task != name or not rows:
+                continue
+            chamfer = [
+                np.array(r["chamfer_over_steps"], float)
+                for r in rows
+                if r.get("chamfer_over_steps")
+            ]
+            if chamfer:
+                axes[0, col].plot(1000 * _padded_mean(chamfer), label=method)
+            if any("steps" in r for r in rows):
+                axes[1, col].plot(
+                    _padded_mean([EpisodeReturns(r) for r in rows]), label=method
+                )
+        axes[0, col].set_title(f"{name}: Chamfer distance to the demo's end")
+        axes[0, col].set_ylabel("Chamfer distance [1e-3 m^2]")
+        axes[1, col].set_title(f"{name}: accumulated return")
+        axes[1, col].set_xlabel("control step")
+        axes[1, col].set_ylabel(
+            f"return (+{SUCCESS_REWARD:g} success, {WARNING_REWARD:g} per rule break)"
+        )
+        for ax in axes[:, col]:
+            ax.legend(fontsize=7)
     fig.tight_layout()
     fig.savefig(path, dpi=90)
     plt.close(fig)

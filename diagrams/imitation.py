@@ -49,6 +49,7 @@ from fabric_imitation.diagrams.success import TaskSuccess
 from fabric_imitation.learning.demo_io import Demo, LoadDemo
 from fabric_imitation.learning.demo_learning import DemoModel, learn_from_demo
 from fabric_imitation.learning.errors import InputError
+from fabric_imitation.learning.geometry import PinholeCamera
 from fabric_imitation.learning.metrics import (
     chamfer_distance,
     cloud_from_depth,
@@ -67,6 +68,7 @@ from fabric_imitation.systems.imitation import (
     RUNNING,
     TERMINATION_NAMES,
     CfmController,
+    ChamferToDemo,
     DemoReward,
     KeypointEstimator,
     MpcController,
@@ -388,7 +390,33 @@ def MakeImitationDiagram(
             targets.GetOutputPort(f"{side}.ee_target"),
             station.diagram.GetInputPort(StationPorts.ee_target(side)),
         )
+    # The paper's Chamfer distance to the demo's last frame, every step.
+    camera_model = PinholeCamera.from_model(CameraModelFromConfig(scenario.camera))
+    target_W = cloud_from_depth(
+        camera_model,
+        prepared.demo.final_depth,
+        prepared.demo.final_mask,
+        np.random.default_rng(0),
+    )
+    chamfer = builder.AddNamedSystem(
+        "chamfer_to_demo",
+        ChamferToDemo(
+            camera=camera_model,
+            target_O=world_to_object(target_W, prepared.demo.object_pose),
+            width=cam.width,
+            height=cam.height,
+            period=dt,
+            offset=start,
+        ),
+    )
+    for port, name in (
+        (StationPorts.MASK, "mask"),
+        (StationPorts.DEPTH, "depth"),
+        (StationPorts.OBJECT_POSE, "object_pose"),
+    ):
+        builder.Connect(station.diagram.GetOutputPort(port), chamfer.GetInputPort(name))
     logged = {
+        "chamfer": chamfer.GetOutputPort("chamfer"),
         "estimated_keypoints": estimator.GetOutputPort("keypoints"),
         "object_pose": pose.GetOutputPort("vector"),
         "grippers": grippers.get_output_port(),
@@ -645,9 +673,10 @@ def CountRuleBreaks(
     safety_ctx: SafetyContext,
 ) -> dict:
     """How many transitions break any safety rule (judged on the state before
-    and after each action), and how many break each rule."""
+    and after each action), how many break each rule, and (key "at") the
+    indices of the transitions that break any."""
     if len(action) == 0:
-        return {"any": 0, **{rule: 0 for rule in RULES}}
+        return {"any": 0, **{rule: 0 for rule in RULES}, "at": []}
     t = torch.as_tensor
     bad = rule_violations(
         t(before, dtype=torch.float64),
@@ -659,7 +688,11 @@ def CountRuleBreaks(
     any_bad = torch.zeros(len(action), dtype=torch.bool)
     for v in bad.values():
         any_bad |= v
-    return {"any": int(any_bad.sum()), **{r: int(bad[r].sum()) for r in RULES}}
+    return {
+        "any": int(any_bad.sum()),
+        **{r: int(bad[r].sum()) for r in RULES},
+        "at": torch.nonzero(any_bad)[:, 0].tolist(),
+    }
 
 
 def _chamfer(camera, frame: Frame, demo: Demo, pose_now, rng) -> float:
@@ -691,8 +724,18 @@ def ScoreEpisode(
     estimated = CountRuleBreaks(
         tr.estimated_before, tr.action, tr.estimated_after, scenario, safety_ctx
     )
+    estimated.pop("at")
+    # Row k holds the Chamfer distance of the image at (k - 1) dt, where the
+    # rows whose step count grew decided an action: the distance seen
+    # before each executed action, then the last one (after the settle).
+    chamfer_rows = [*solved, len(steps) - 1]
     summary = {
         "steps": int(steps[-1]),
+        "chamfer_over_steps": [
+            round(float(logs["chamfer"][k, 0]), 6) for k in chamfer_rows
+        ]
+        if "chamfer" in logs
+        else None,
         "termination": "diverged" if run.error else TERMINATION_NAMES[termination],
         "rule_breaks_estimated": estimated,
         "executed_violations": estimated["any"],
@@ -710,6 +753,8 @@ def ScoreEpisode(
         true = CountRuleBreaks(
             tr.true_before, tr.action, tr.true_after, scenario, safety_ctx
         )
+        # The executed actions (0-based) that broke a rule on the true cloth.
+        summary["true_rule_break_steps"] = true.pop("at")
         summary["rule_breaks_true"] = true
         summary["executed_violations_ground_truth"] = true["any"]
     if tr.true_before is None:
@@ -725,8 +770,6 @@ def ScoreEpisode(
         demo_final = world_to_object(gt["final_keypoints_W"], demo.object_pose)
         final_O = world_to_object(final.keypoints_W, pose)
         final_iou = raster_iou(final_O[:, :2], demo_final[:, :2])
-        from fabric_imitation.learning.geometry import PinholeCamera
-
         chamfer = _chamfer(
             PinholeCamera.from_model(CameraModelFromConfig(scenario.camera)),
             final,

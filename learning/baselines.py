@@ -383,7 +383,7 @@ def train_baselines(ds, *, cfg: BaselineTrainConfig | None = None, log=print):
             tcn_opt.zero_grad()
             l_tcn.backward()
             tcn_opt.step()
-            total += [float(v) for v in (l_inv, l_fwd, l_con, l_nce, l_tcn)]
+            total += [float(v.detach()) for v in (l_inv, l_fwd, l_con, l_nce, l_tcn)]
             batches += 1
         for net in nets.values():
             net.eval()
@@ -409,8 +409,8 @@ def train_baselines(ds, *, cfg: BaselineTrainConfig | None = None, log=print):
 @torch.no_grad()
 def _heldout_metrics(b: Baselines, S, Sn, A, episode, step, cfg) -> dict:
     """Zero: the inverse model's action error against the no-move action;
-    CFM: top-1 accuracy of the true next state among 256 held-out ones (by
-    predicted latent); TCN: how often the embedding puts the next step
+    CFM: top-1 accuracy of the true next state among up to 256 held-out
+    ones (by predicted latent); TCN: how often the embedding puts the next step
     nearer than a step tcn_negative_steps or more away (same episode)."""
     if len(S) == 0:
         return {}
@@ -425,7 +425,8 @@ def _heldout_metrics(b: Baselines, S, Sn, A, episode, step, cfg) -> dict:
         z_pred = b.cfm_predict(S[i], A[i : i + 1])
         z_all = b.cfm_latent(Sn[:n], S[i])
         hits += int((z_all - z_pred).norm(dim=-1).argmin() == i)
-    out[f"cfm_top1_of_{n}"] = round(hits / n, 3)
+    out["cfm_top1"] = round(hits / n, 3)
+    out["cfm_candidates"] = n
     right = total = 0
     for i in range(len(S) - 1):
         if episode[i + 1] != episode[i]:
@@ -598,7 +599,7 @@ def TrainBaselines(
         Path(out),
         extra={
             "dataset": {
-                "path": str(data),
+                "file": Path(data).name,
                 "fingerprint": ds.fingerprint,
                 "transitions": len(ds),
             }

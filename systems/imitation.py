@@ -110,6 +110,63 @@ class KeypointEstimator(LeafSystem):
         return EventStatus.Succeeded()
 
 
+class ChamferToDemo(LeafSystem):
+    """The paper's Chamfer distance (Section V-B) between the fabric seen now
+    and the demo's last frame, once per control step: `points` points
+    back-projected from the depth inside the fabric mask, evenly down-
+    sampled, in the object frame, against `target_O` (the same from the
+    demo's last frame in its object frame). For curves over the control
+    steps (the paper's Fig. 8 a-b); the controller does not read it.
+
+    Input ports: ``mask`` (ImageGrey8U), ``depth`` (ImageDepth32F),
+    ``object_pose`` (RigidTransform X_WO).
+    Output port: ``chamfer`` (1, m^2; from state).
+    """
+
+    def __init__(
+        self,
+        *,
+        camera,
+        target_O: np.ndarray,
+        width: int,
+        height: int,
+        period: float,
+        offset: float = 0.0,
+    ):
+        super().__init__()
+        self._camera = camera
+        self._target = np.asarray(target_O, float)
+        self._mask = self.DeclareAbstractInputPort(
+            "mask", AbstractValue.Make(ImageGrey8U(width, height))
+        )
+        self._depth = self.DeclareAbstractInputPort(
+            "depth", AbstractValue.Make(ImageDepth32F(width, height))
+        )
+        self._pose = self.DeclareAbstractInputPort(
+            "object_pose", AbstractValue.Make(RigidTransform())
+        )
+        self._state = self.DeclareDiscreteState(1)
+        self.DeclarePeriodicDiscreteUpdateEvent(period, offset, self._update)
+        self.DeclareStateOutputPort("chamfer", self._state)
+
+    def _update(self, context, discrete_state) -> EventStatus:
+        from fabric_imitation.learning.metrics import (
+            chamfer_distance,
+            cloud_from_depth,
+        )
+
+        cloud_W = cloud_from_depth(
+            self._camera,
+            self._depth.Eval(context).data[:, :, 0],
+            self._mask.Eval(context).data[:, :, 0],
+            np.random.default_rng(0),
+        )
+        pose = PlanarPose.FromRigidTransform(self._pose.Eval(context))
+        d = chamfer_distance(world_to_object(cloud_W, pose), self._target)
+        discrete_state.get_mutable_vector(self._state).SetFromVector([d])
+        return EventStatus.Succeeded()
+
+
 class DemoReward(LeafSystem):
     """The demo's state-alignment reward of the current keypoints.
 

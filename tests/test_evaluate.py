@@ -1,6 +1,7 @@
 """Evaluation bookkeeping: aggregates and the Table-I markdown agree with the
 trials' JSON lines."""
 
+import numpy as np
 from fabric_imitation.diagrams.evaluate import PROTOCOLS, ResultsMarkdown, _aggregate
 
 
@@ -109,3 +110,59 @@ def test_an_evaluation_killed_mid_way_resumes_without_repeating_or_losing(tmp_pa
     assert sorted(r["trial"] for r in rows) == [0, 1, 2]  # none repeated, none lost
     summary = json.loads((tmp_path / "eval.jsonl.summary.json").read_text())
     assert summary["results"]["box"]["scripted"]["trials"] == 3
+
+
+def test_a_trial_that_raises_is_one_failed_row(monkeypatch):
+    """A crash inside a trial is recorded as that trial's failure (the sweep
+    goes on), and the cell counts it without its episode figures."""
+    import fabric_imitation.diagrams.evaluate as evaluate
+    import fabric_imitation.diagrams.imitation as imitation
+
+    def crash(**kwargs):
+        raise ValueError("the controller exploded")
+
+    monkeypatch.setattr(imitation, "Imitate", crash)
+    monkeypatch.setitem(evaluate._PREPARED, "box", object())
+    row = evaluate._run_trial(
+        {
+            "scenario": "box",
+            "method": "zero",
+            "trial": 3,
+            "pose": [0.0, -0.14, 10.0],
+            "scenario_text": "",
+        }
+    )
+    assert row["success"] is False and row["trial"] == 3
+    assert row["error"] == "ValueError: the controller exploded"
+    cell = _aggregate([_row(0, True, 0, 20, 0.9), row])
+    assert (cell["successes"], cell["trials"], cell["crashed"]) == (1, 2, 1)
+    assert cell["steps_mean"] == 20.0
+
+
+def test_returns_and_curves_follow_the_trials(tmp_path):
+    """Fig. 8's curves: the return drops by one warning per rule-breaking
+    action and gains the success reward at the end; shorter episodes hold
+    their last value in the mean; the plot is written."""
+    from fabric_imitation.diagrams.evaluate import (
+        SUCCESS_REWARD,
+        WARNING_REWARD,
+        EpisodeReturns,
+        _padded_mean,
+        _plot_curves,
+    )
+
+    row = {"steps": 4, "true_rule_break_steps": [1, 2], "success": True}
+    np.testing.assert_allclose(
+        EpisodeReturns(row),
+        [0, WARNING_REWARD, 2 * WARNING_REWARD, 2 * WARNING_REWARD + SUCCESS_REWARD],
+    )
+    np.testing.assert_allclose(
+        _padded_mean([np.array([1.0, 2.0]), np.array([3.0])]), [2.0, 2.5]
+    )
+    rows = [
+        {**_row(0, True, 0, 3, 0.9), "chamfer_over_steps": [0.004, 0.002, 0.001]},
+        {**_row(1, False, 1, 2, 0.5), "chamfer_over_steps": [0.004, 0.003]},
+    ]
+    path = tmp_path / "curves.png"
+    _plot_curves({("box", "ours"): rows, ("box", "zero"): rows[1:]}, path)
+    assert path.stat().st_size > 10_000

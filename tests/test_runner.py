@@ -169,8 +169,11 @@ class FixedMpc:
     def __init__(self, action_O, done=False):
         self.action = torch.as_tensor(action_O, dtype=torch.float32)
         self.frames = []
-        self.demo = types.SimpleNamespace(done=lambda S: torch.tensor(done))
+        self.done = done
         self.config = types.SimpleNamespace(num_samples=1)
+
+    def finished(self, S, steps):
+        return self.done
 
     def solve(self, S, *, step, seed, previous_progress, frame_pose=None):
         self.frames.append(np.array(frame_pose))
