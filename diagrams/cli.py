@@ -42,6 +42,9 @@ DESCRIPTIONS = {
     "motion), optionally recording it.",
     "demo record": "Record a demo (observation-only video, depth and masks) of "
     "the scripted task in simulation.",
+    "demo import": "Build a demo from a person's RGB-D recording (video + depth "
+    "PNGs + intrinsics, or a ROS bag): fabric masks by colour, the object's "
+    "pose from its ArUco marker.",
     "collect": "Collect prior transitions in the contact-free prior scene "
     "(random safe actions), resumable.",
     "train": "Train the priors f_R, f_D and f_I on a collected dataset.",
@@ -170,6 +173,20 @@ def _add_demo_record(p):
     p.add_argument(
         "--video", type=Path, default=None, help="write the camera's view (mp4) here"
     )
+    p.add_argument(
+        "--export-raw",
+        type=Path,
+        default=None,
+        help="also write what an RGB-D camera driver would record here "
+        "(rgb.mp4, depth/*.png in mm, intrinsics.yaml), for `demo import`",
+    )
+    p.add_argument(
+        "--raw-scale",
+        type=int,
+        default=4,
+        help="raw camera resolution as a multiple of the control camera's",
+    )
+    p.add_argument("--raw-fps", type=float, default=15.0)
 
 
 @command("demo record")(_add_demo_record)
@@ -182,6 +199,127 @@ def _demo_record(args) -> dict:
         out=args.out,
         record=args.record,
         video=args.video,
+        export_raw=args.export_raw,
+        raw_scale=args.raw_scale,
+        raw_fps=args.raw_fps,
+    )
+
+
+def _add_demo_import(p):
+    _scenario_flags(p)
+    p.add_argument("--out", type=Path, required=True, help="demo directory to write")
+    src = p.add_argument_group(
+        "recording (a video, its depth and intrinsics; or a bag)"
+    )
+    src.add_argument("--rgb", type=Path, help="colour video (mp4)")
+    src.add_argument(
+        "--depth", type=Path, help="directory of 16-bit PNGs [mm], or an .npz"
+    )
+    src.add_argument(
+        "--intrinsics", type=Path, help="YAML: width, height, fx, fy, cx, cy"
+    )
+    src.add_argument("--bag", type=Path, help="ROS 1 (.bag) or ROS 2 bag")
+    src.add_argument("--color-topic", default="/camera/color/image_raw")
+    src.add_argument(
+        "--depth-topic", default="/camera/aligned_depth_to_color/image_raw"
+    )
+    src.add_argument("--info-topic", default="/camera/color/camera_info")
+    masks = p.add_argument_group("fabric masks (one of)")
+    masks.add_argument(
+        "--fabric-hsv",
+        nargs=6,
+        type=int,
+        metavar=("H_LO", "S_LO", "V_LO", "H_HI", "S_HI", "V_HI"),
+        help="the fabric's colour box in OpenCV HSV (H 0-179, S, V 0-255)",
+    )
+    masks.add_argument("--mask-video", type=Path, help="a video of the masks")
+    marker = p.add_argument_group("the object's marker (default: the scenario's)")
+    marker.add_argument("--marker-dict", default=None)
+    marker.add_argument("--marker-id", type=int, default=None)
+    marker.add_argument("--marker-size", type=float, default=None, help="[m]")
+    marker.add_argument(
+        "--table-marker-id",
+        type=int,
+        default=None,
+        help="a marker lying on the table that gives the camera's pose",
+    )
+    marker.add_argument("--table-marker-size", type=float, default=0.10)
+    marker.add_argument(
+        "--table-marker-pose",
+        nargs=3,
+        type=float,
+        default=[0.0, 0.0, 0.0],
+        metavar=("X", "Y", "YAW"),
+        help="its centre on the table [m] and turn [deg] in the world frame",
+    )
+    p.add_argument(
+        "--step-seconds",
+        type=float,
+        default=None,
+        help="control period the frames are subsampled to (default: the "
+        "scenario's motion.step_seconds)",
+    )
+
+
+@command("demo import")(_add_demo_import)
+def _demo_import(args) -> dict:
+    from fabric_imitation.learning.demo_import import (
+        ImportDemo,
+        MarkerSpec,
+        ReadBag,
+        ReadRecording,
+        ReadVideo,
+    )
+
+    scenario = LoadScenarioFromArgs(args)
+    if args.bag is not None:
+        recording = ReadBag(
+            args.bag,
+            color_topic=args.color_topic,
+            depth_topic=args.depth_topic,
+            info_topic=args.info_topic,
+        )
+    elif None in (args.rgb, args.depth, args.intrinsics):
+        raise InputError("give --rgb, --depth and --intrinsics, or --bag")
+    else:
+        recording = ReadRecording(args.rgb, args.depth, args.intrinsics)
+    if (args.fabric_hsv is None) == (args.mask_video is None):
+        raise InputError("give one of --fabric-hsv or --mask-video")
+    masks = None
+    if args.mask_video is not None:
+        frames, _ = ReadVideo(args.mask_video)
+        masks = frames.max(axis=3) > 127
+    spec = scenario.object.marker
+    marker = MarkerSpec(
+        dictionary=args.marker_dict or spec.dictionary,
+        marker_id=spec.id if args.marker_id is None else args.marker_id,
+        size=args.marker_size or spec.size,
+        offset=list(spec.offset),
+    )
+    if marker.marker_id < 0:
+        raise InputError(
+            "no marker: give --marker-id or set object.marker in the scenario"
+        )
+    table = None
+    if args.table_marker_id is not None:
+        table = {
+            "id": args.table_marker_id,
+            "size": args.table_marker_size,
+            "pose": args.table_marker_pose,
+        }
+    hsv = None
+    if args.fabric_hsv is not None:
+        hsv = (tuple(args.fabric_hsv[:3]), tuple(args.fabric_hsv[3:]))
+    return ImportDemo(
+        recording=recording,
+        scenario=scenario,
+        scenario_name=args.scenario,
+        out=args.out,
+        hsv=hsv,
+        masks=masks,
+        marker=marker,
+        table_marker=table,
+        step_seconds=args.step_seconds,
     )
 
 
@@ -341,7 +479,8 @@ def _add_evaluate(p):
         "--methods",
         nargs="+",
         default=["ours"],
-        help="ours, no_mpc, no_prior, no_cost, replay, scripted",
+        help="ours; the ablations no_mpc, no_prior, no_cost; the baselines "
+        "zero, cfm, tcn (trained by train-baselines), replay; scripted",
     )
     p.add_argument(
         "--protocol",
@@ -358,6 +497,13 @@ def _add_evaluate(p):
         help="JSON-lines file of trials (resumed if it exists)",
     )
     p.add_argument("--workers", type=int, default=1, help="parallel trials")
+    p.add_argument(
+        "--executor",
+        choices=["local", "ray"],
+        default="local",
+        help="local processes, or Ray actors (a running cluster if `ray` is "
+        "connected, else a local one with --workers CPUs)",
+    )
     p.add_argument("--seed", type=int, default=0, help="seed of the trial poses")
     p.add_argument(
         "--demo", type=Path, default=None, help="demo directory (default: shipped)"
@@ -389,6 +535,7 @@ def _evaluate(args) -> dict:
         priors=args.priors,
         scenario_text=args.scenario_text,
         protocol=args.protocol,
+        executor=args.executor,
     )
 
 

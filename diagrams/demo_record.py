@@ -7,7 +7,7 @@ import numpy as np
 from fabric_imitation.diagrams.demos import ScriptedDemoPlan
 from fabric_imitation.diagrams.recording import MakeRecordingMeshcat
 from fabric_imitation.diagrams.simulation import OpenLoopRun, RunResult, WriteOutputs
-from fabric_imitation.diagrams.station import ClothStation
+from fabric_imitation.diagrams.station import CameraModelFromConfig, ClothStation
 from fabric_imitation.learning.demo_io import (
     CameraModel,
     ExistingDemoRequest,
@@ -51,8 +51,16 @@ def RecordDemo(
     record: Path | None = None,
     video: Path | None = None,
     progress: bool = True,
+    export_raw: Path | None = None,
+    raw_scale: int = 4,
+    raw_fps: float = 15.0,
 ) -> dict:
     """Records the scripted demo of `scenario` into `out`; returns a summary.
+
+    With `export_raw`, also writes there what an RGB-D camera driver at the
+    control camera's pose would record (learning/demo_import.py's format):
+    the camera at `raw_scale` times the control camera's resolution,
+    `raw_fps` frames per second, from the start to the end of the settle.
 
     Re-running with the same request on a finished directory records nothing
     and returns the stored summary; a directory holding another demo is an
@@ -86,6 +94,8 @@ def RecordDemo(
         release_step=plan.release_step,
         meshcat=meshcat,
         video=video is not None,
+        raw_camera_scale=raw_scale if export_raw else 0,
+        raw_fps=raw_fps,
     )
     result = run.run(progress=progress)
     if result.error is not None:
@@ -112,6 +122,31 @@ def RecordDemo(
         summary=summary,
         fps=1.0 / scenario.motion.step_seconds,
     )
+    if export_raw is not None:
+        from fabric_imitation.diagrams.station import RawCameraConfig
+        from fabric_imitation.learning.demo_import import WriteRawRecording
+
+        raw = CameraModelFromConfig(RawCameraConfig(scenario, raw_scale))
+        WriteRawRecording(
+            export_raw,
+            rgb=run.raw.rgb,
+            depth=run.raw.depth,
+            fps=raw_fps,
+            intrinsics={
+                "width": raw.width,
+                "height": raw.height,
+                "fx": raw.fx,
+                "fy": raw.fy,
+                "cx": raw.cx,
+                "cy": raw.cy,
+            },
+        )
+        summary["export_raw"] = {
+            "out": str(export_raw),
+            "frames": len(run.raw.rgb),
+            "fps": raw_fps,
+            "size": [raw.width, raw.height],
+        }
     WriteOutputs(
         summary, video=video, recorder=run.video, record=record, meshcat=meshcat
     )

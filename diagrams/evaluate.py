@@ -193,6 +193,33 @@ def _run_trial(job: dict) -> dict:
     return {**job, **summary, "trial_seconds": round(time.perf_counter() - t0, 1)}
 
 
+def _RayTrials(jobs: list[dict], workers: int, prepared: dict):
+    """Runs the trials on Ray actors (each learns nothing: it gets what was
+    learned from the demos once); yields rows as they finish."""
+    try:
+        import ray
+        from ray.util import ActorPool
+    except ImportError:
+        raise InputError(
+            "--executor ray needs the optional extra: "
+            "pip install 'fabric-imitation[ray]'"
+        ) from None
+    if not ray.is_initialized():
+        ray.init(num_cpus=workers, include_dashboard=False, log_to_driver=False)
+
+    @ray.remote(num_cpus=1)
+    class TrialWorker:
+        def __init__(self, learned):
+            _set_prepared(learned)
+
+        def run(self, job):
+            return _run_trial(job)
+
+    learned = ray.put(prepared)
+    pool = ActorPool([TrialWorker.remote(learned) for _ in range(workers)])
+    yield from pool.map_unordered(lambda actor, job: actor.run.remote(job), jobs)
+
+
 def _aggregate(rows: list[dict]) -> dict:
     from fabric_imitation.learning.safety import RULES
 
@@ -257,11 +284,14 @@ def Evaluate(
     scenario_text: str = "",
     progress: bool = True,
     protocol: str = "transformation",
+    executor: str = "local",
 ) -> dict:
     """Runs `trials` trials per scenario and method (resumable via `out`,
     a JSON-lines file of finished trials); writes `out`.summary.json and a
     bar plot `out`.png. `scenario_text` (YAML) overrides every scenario, e.g.
     "cloth: {engine: fem}"."""
+    if executor not in ("local", "ray"):
+        raise InputError(f"unknown executor {executor!r}; use local or ray")
     unknown = [m for m in methods if m not in METHODS]
     if unknown:
         raise InputError(f"unknown method(s) {unknown}; known: {', '.join(METHODS)}")
@@ -331,7 +361,10 @@ def Evaluate(
                 " ".join(f"{k} {ok}/{n}" for k, (ok, n) in sorted(cells.items()))
             )
 
-    if workers == 1:
+    if executor == "ray":
+        for row in _RayTrials(jobs, workers, prepared):
+            store(row)
+    elif workers == 1:
         _set_prepared(prepared)
         for job in jobs:
             store(_run_trial(job))

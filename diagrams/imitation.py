@@ -766,8 +766,14 @@ def ScoreEpisode(
         final = run.final
         report = TaskSuccess(scenario, final.positions_W, run.top_layer)
         demo = prepared.demo
-        gt = np.load(demo.path / "ground_truth.npz")
-        demo_final = world_to_object(gt["final_keypoints_W"], demo.object_pose)
+        if (demo.path / "ground_truth.npz").is_file():
+            gt = np.load(demo.path / "ground_truth.npz")
+            demo_final_W = gt["final_keypoints_W"]
+            summary["demo_final_from"] = "ground truth"
+        else:  # an imported demo: what f_R sees in its last frame
+            demo_final_W = prepared.priors.keypoints(demo.final_mask, demo.final_depth)
+            summary["demo_final_from"] = "f_R on the demo's last frame"
+        demo_final = world_to_object(demo_final_W, demo.object_pose)
         final_O = world_to_object(final.keypoints_W, pose)
         final_iou = raster_iou(final_O[:, :2], demo_final[:, :2])
         chamfer = _chamfer(

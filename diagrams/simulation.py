@@ -24,7 +24,11 @@ from fabric_imitation.diagrams.success import SuccessReport, TaskSuccess
 from fabric_imitation.learning.demo_io import VIDEO_MIN_SIZE, WriteVideo
 from fabric_imitation.scenarios.schema import Scenario
 from fabric_imitation.systems.targets import ActionPlayer, GripperTargetIntegrator
-from fabric_imitation.systems.visualization import ClothFrameRecorder, VideoRecorder
+from fabric_imitation.systems.visualization import (
+    ClothFrameRecorder,
+    RgbdRecorder,
+    VideoRecorder,
+)
 from pydrake.geometry import Meshcat
 from pydrake.systems.analysis import Simulator
 from pydrake.systems.framework import DiagramBuilder
@@ -187,13 +191,20 @@ class OpenLoopRun:
         release_step: int | None,
         meshcat: Meshcat | None = None,
         video: bool = False,
+        raw_camera_scale: int = 0,
+        raw_fps: float = 15.0,
     ):
         self.scenario = scenario
         self.actions = np.asarray(actions, dtype=float).reshape(-1, 6)
         self.release_step = release_step
         self.step_seconds = scenario.motion.step_seconds
         builder = DiagramBuilder()
-        self.station = MakeClothStation(scenario, meshcat=meshcat, people_camera=video)
+        self.station = MakeClothStation(
+            scenario,
+            meshcat=meshcat,
+            people_camera=video,
+            raw_camera_scale=raw_camera_scale,
+        )
         station = builder.AddNamedSystem("station", self.station.diagram)
         integrator = builder.AddNamedSystem(
             "targets", GripperTargetIntegrator(step_seconds=self.step_seconds)
@@ -219,6 +230,25 @@ class OpenLoopRun:
             )
         self.meshcat = meshcat
         self.video = AddVideoRecorder(builder, self.station) if video else None
+        # What an RGB-D camera driver would record (demo record --export-raw).
+        self.raw = None
+        if raw_camera_scale:
+            cam = scenario.camera
+            self.raw = builder.AddNamedSystem(
+                "raw_recorder",
+                RgbdRecorder(
+                    width=cam.width * raw_camera_scale,
+                    height=cam.height * raw_camera_scale,
+                    fps=raw_fps,
+                ),
+            )
+            for port, name in (
+                (StationPorts.RAW_RGB, "rgb"),
+                (StationPorts.RAW_DEPTH, "depth"),
+            ):
+                builder.Connect(
+                    station.GetOutputPort(port), self.raw.GetInputPort(name)
+                )
         if meshcat is not None:
             AddClothRecorder(builder, self.station, meshcat)
         self.diagram = builder.Build()

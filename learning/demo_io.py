@@ -156,7 +156,7 @@ def WriteDemo(
     final_mask: np.ndarray,
     camera: CameraModel,
     scenario_yaml: str,
-    ground_truth: dict[str, np.ndarray],
+    ground_truth: dict[str, np.ndarray] | None,
     summary: dict,
     fps: float,
 ) -> None:
@@ -182,7 +182,8 @@ def WriteDemo(
         )
         (tmp / "camera.json").write_text(json.dumps(camera.to_json(), indent=1))
         (tmp / "scenario.yaml").write_text(scenario_yaml)
-        np.savez_compressed(tmp / "ground_truth.npz", **ground_truth)
+        if ground_truth is not None:  # simulation only
+            np.savez_compressed(tmp / "ground_truth.npz", **ground_truth)
         files = {p.name: FileSha256(p) for p in sorted(tmp.iterdir())}
         manifest = {
             "format": DEMO_FORMAT,

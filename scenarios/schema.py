@@ -140,6 +140,10 @@ class ClothConfig:
     # Side [m] of the square capture region at each grasped corner: vertices
     # inside it are fixed to the gripper's clip.
     grasp_size: float = 0.04
+    # Colour (RGB, 0-1) the cameras see; a colour that a threshold can find
+    # against the table, the object and skin for demos imported from an RGB
+    # video (`demo import --fabric-hsv`).
+    color: list[float] = dc.field(default_factory=lambda: [0.85, 0.15, 0.15])
     vbd: VbdConfig = dc.field(default_factory=VbdConfig)
 
     def __post_init__(self):
@@ -173,10 +177,47 @@ class ClothConfig:
         _check(
             0 < self.grasp_size < min(self.size), "cloth.grasp_size", self.grasp_size
         )
+        _check(
+            len(self.color) == 3 and all(0 <= c <= 1 for c in self.color),
+            "cloth.color",
+            self.color,
+        )
 
 
 MATERIAL_MODELS = ("linear_corotated", "corotated", "neohookean", "linear")
 OBJECT_KINDS = ("none", "box", "plate")
+
+
+ARUCO_DICTIONARIES = (
+    "DICT_4X4_50",
+    "DICT_5X5_50",
+    "DICT_6X6_50",
+    "DICT_ARUCO_ORIGINAL",
+)
+
+
+@dc.dataclass
+class MarkerConfig:
+    """An ArUco marker fixed to the task object, facing up, by which a camera
+    finds the object's pose (`demo import`); in simulation it is drawn on a
+    thin plaque (visual only) when `id` >= 0."""
+
+    id: int = -1  # -1: no marker
+    dictionary: str = "DICT_4X4_50"
+    size: float = 0.06  # [m] side of the black square
+    # The marker's centre and turn in the object frame: x, y, z [m] (z: the
+    # height of its face, e.g. the box's top), yaw [deg].
+    offset: list[float] = dc.field(default_factory=lambda: [0.0, 0.0, 0.06, 0.0])
+
+    def __post_init__(self):
+        _check(self.id >= -1, "object.marker.id", self.id)
+        _check(
+            self.dictionary in ARUCO_DICTIONARIES,
+            f"object.marker.dictionary (one of {', '.join(ARUCO_DICTIONARIES)})",
+            self.dictionary,
+        )
+        _check(0 < self.size < 0.5, "object.marker.size", self.size)
+        _check(len(self.offset) == 4, "object.marker.offset", self.offset)
 
 
 @dc.dataclass
@@ -188,8 +229,10 @@ class ObjectConfig:
     # Pose on the table: x, y [m], yaw [deg].
     pose: list[float] = dc.field(default_factory=lambda: [0.0, -0.14, 0.0])
     friction: float = 0.5
+    marker: MarkerConfig = dc.field(default_factory=MarkerConfig)
 
     def __post_init__(self):
+        self.marker.__post_init__()
         _check(self.kind in OBJECT_KINDS, "object.kind", self.kind)
         _check(len(self.size) == 3 and min(self.size) > 0, "object.size", self.size)
         _check(len(self.pose) == 3, "object.pose", self.pose)
@@ -270,6 +313,9 @@ class GrippersConfig:
     # Mass [kg] of each clip (the part of a gripper that stays on a released
     # corner) after release; while grasped it has the anchor's mass.
     clip_mass: float = 0.005
+    # Draw a skin-coloured sphere (an operator's hand, 4 cm) at each gripper
+    # for the cameras (visual only): a simulated person's demo to import.
+    hands: bool = False
     # Used when kind is panda.
     panda: PandaConfig = dc.field(default_factory=PandaConfig)
 

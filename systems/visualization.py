@@ -10,7 +10,7 @@ import numpy as np
 from pydrake.common.value import AbstractValue
 from pydrake.geometry import Meshcat, Rgba
 from pydrake.systems.framework import EventStatus, LeafSystem
-from pydrake.systems.sensors import ImageRgba8U
+from pydrake.systems.sensors import ImageDepth32F, ImageRgba8U
 
 CLOTH_FRAMES_PATH = "/cloth_frames"
 CLOTH_RGBA = Rgba(0.85, 0.15, 0.15, 1.0)
@@ -84,4 +84,33 @@ class VideoRecorder(LeafSystem):
     def _publish(self, context) -> EventStatus:
         for name, port in self._ports.items():
             self.frames[name].append(np.array(port.Eval(context).data[:, :, :3]))
+        return EventStatus.Succeeded()
+
+
+class RgbdRecorder(LeafSystem):
+    """Keeps the colour and depth images on its inputs every 1 / `fps`
+    seconds, as an RGB-D camera driver records them (`demo record
+    --export-raw`).
+
+    Input ports: ``rgb`` (ImageRgba8U), ``depth`` (ImageDepth32F), both
+    width x height. After a run: `rgb` (H, W, 3) uint8 and `depth` (H, W)
+    float32 [m] lists and their `times`.
+    """
+
+    def __init__(self, *, width: int, height: int, fps: float):
+        super().__init__()
+        self.fps = fps
+        self.rgb, self.depth, self.times = [], [], []
+        self._rgb = self.DeclareAbstractInputPort(
+            "rgb", AbstractValue.Make(ImageRgba8U(width, height))
+        )
+        self._depth = self.DeclareAbstractInputPort(
+            "depth", AbstractValue.Make(ImageDepth32F(width, height))
+        )
+        self.DeclarePeriodicPublishEvent(1.0 / fps, 0.0, self._publish)
+
+    def _publish(self, context) -> EventStatus:
+        self.rgb.append(np.array(self._rgb.Eval(context).data[:, :, :3]))
+        self.depth.append(np.array(self._depth.Eval(context).data[:, :, 0]))
+        self.times.append(context.get_time())
         return EventStatus.Succeeded()

@@ -166,3 +166,45 @@ def test_returns_and_curves_follow_the_trials(tmp_path):
     path = tmp_path / "curves.png"
     _plot_curves({("box", "ours"): rows, ("box", "zero"): rows[1:]}, path)
     assert path.stat().st_size > 10_000
+
+
+def test_ray_and_local_evaluations_write_the_same_trials(tmp_path):
+    """`--executor ray` (a local Ray) stores the same trial rows and summary
+    as local processes."""
+    import json
+
+    import pytest
+
+    ray = pytest.importorskip("ray")
+    from fabric_imitation.diagrams.evaluate import Evaluate
+
+    common = dict(
+        scenario_names=["box"],
+        methods=["scripted"],
+        trials=2,
+        seed=0,
+        scenario_text="cloth: {vbd: {resolution: [8, 8]}}",
+        progress=False,
+    )
+    local = Evaluate(out=tmp_path / "local.jsonl", workers=1, **common)
+    ray.init(num_cpus=2, include_dashboard=False, log_to_driver=False)
+    try:
+        remote = Evaluate(
+            out=tmp_path / "ray.jsonl", workers=2, executor="ray", **common
+        )
+    finally:
+        ray.shutdown()
+
+    def rows(name):
+        lines = (tmp_path / name).read_text().splitlines()
+        return sorted(
+            (
+                {k: v for k, v in json.loads(line).items() if k != "trial_seconds"}
+                for line in lines
+            ),
+            key=lambda r: r["trial"],
+        )
+
+    assert len(rows("local.jsonl")) == 2
+    assert rows("local.jsonl") == rows("ray.jsonl")
+    assert local["results"] == remote["results"]
