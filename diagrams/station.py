@@ -262,8 +262,9 @@ def MarkerTexture(dictionary: str, marker_id: int) -> Path:
 
 
 def _add_marker_plaque(plant: MultibodyPlant, body, marker) -> None:
-    """The marker printed on a 1 mm plaque on the object (visual only: the
-    cloth does not touch it), its face at the marker's offset height."""
+    """The marker printed on a 1 mm plaque lying on the object's surface at
+    the marker's offset height (its face 1 mm above it; visual only: the
+    cloth does not touch it)."""
     import cv2
 
     cells = (
@@ -275,7 +276,7 @@ def _add_marker_plaque(plant: MultibodyPlant, body, marker) -> None:
     side = marker.size * (cells + 2 * MARKER_MARGIN_CELLS) / cells
     x, y, z, yaw = marker.offset
     X_OP = RigidTransform(
-        RotationMatrix.MakeZRotation(np.radians(yaw)), [x, y, z - 0.0005]
+        RotationMatrix.MakeZRotation(np.radians(yaw)), [x, y, z + 0.0005]
     )
     instance = GeometryInstance(X_OP, Box(side, side, 0.001), "marker")
     texture = str(MarkerTexture(marker.dictionary, marker.id))

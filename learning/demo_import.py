@@ -282,15 +282,23 @@ def SkinMask(rgb: np.ndarray) -> np.ndarray:
     )
 
 
+# Pixels darker than this (HSV value) within 3 px of the fabric are fabric
+# in shadow: a fold's inside, or (in simulation) the cloth's back faces,
+# which the renderer draws black; their hue says nothing.
+DARK_VALUE = 40
+
+
 def FabricMask(rgb: np.ndarray, hsv_low, hsv_high) -> np.ndarray:
     """The fabric's mask (H, W) uint8 {0, 1} from an RGB frame: pixels in the
-    HSV box [hsv_low, hsv_high] (OpenCV ranges: H 0-179, S and V 0-255),
-    skin removed, opened and closed with a 3 x 3 kernel, the largest
-    connected component kept."""
+    HSV box [hsv_low, hsv_high] (OpenCV ranges: H 0-179, S and V 0-255) and
+    dark pixels next to them (DARK_VALUE), skin removed, opened and closed
+    with a 3 x 3 kernel, the largest connected component kept."""
     import cv2
 
     hsv = cv2.cvtColor(rgb, cv2.COLOR_RGB2HSV)
     mask = cv2.inRange(hsv, np.array(hsv_low, np.uint8), np.array(hsv_high, np.uint8))
+    near = cv2.dilate(mask, np.ones((7, 7), np.uint8)) > 0
+    mask[near & (hsv[:, :, 2] < DARK_VALUE)] = 255
     mask[SkinMask(rgb)] = 0
     kernel = np.ones((3, 3), np.uint8)
     mask = cv2.morphologyEx(mask, cv2.MORPH_OPEN, kernel)
