@@ -426,3 +426,127 @@ def BenchMpc(
     if out is not None:
         Path(out).write_text(json.dumps(result, indent=1))
     return result
+
+
+# Fractions of the fabric's mask hidden, and how (`bench occlusion`).
+OCCLUDED_FRACTIONS = (0.0, 0.1, 0.2, 0.3, 0.4, 0.5)
+OCCLUSIONS = ("grippers", "side")
+
+
+def Occlude(mask: np.ndarray, fraction: float, kind: str, rng) -> np.ndarray:
+    """A copy of `mask` (H, W) with about `fraction` of its pixels hidden:
+    "grippers" - discs the size of a hand seen from above (7 px at 160 px)
+    dropped on the fabric until the fraction is reached, as grippers and
+    arms hide it; "side" - the fabric cut off from one side (a band whose
+    edge moves in from a random side), as a partial mask is."""
+    import cv2
+
+    on = mask > 0
+    total = int(on.sum())
+    out = on.copy()
+    if fraction <= 0 or total == 0:
+        return out.astype(np.uint8)
+    if kind == "grippers":
+        ys, xs = np.nonzero(on)
+        while (on & ~out).sum() < fraction * total:
+            i = int(rng.integers(len(ys)))
+            disc = np.zeros(out.shape, np.uint8)
+            cv2.circle(disc, (int(xs[i]), int(ys[i])), 7, 1, -1)
+            out &= disc == 0
+        return out.astype(np.uint8)
+    # side: the pixels of the fabric furthest along a random direction.
+    angle = rng.uniform(0, 2 * np.pi)
+    ys, xs = np.nonzero(on)
+    along = xs * np.cos(angle) + ys * np.sin(angle)
+    cut = np.quantile(along, 1 - fraction)
+    out[ys[along > cut], xs[along > cut]] = False
+    return out.astype(np.uint8)
+
+
+def BenchOcclusion(
+    *,
+    demo_names=("box", "hang", "box_big"),
+    priors_dir: Path | None = None,
+    out: Path | None = None,
+    seed: int = 0,
+) -> dict:
+    """f_R's keypoint error [mm] against the simulator's true keypoints on
+    the shipped demos' frames as more of the fabric's mask is hidden
+    (OCCLUSIONS, OCCLUDED_FRACTIONS). Writes JSON and, next to it, a plot."""
+    import torch
+    from fabric_imitation.diagrams.imitation import DEFAULT_DEMOS, DEFAULT_PRIORS
+    from fabric_imitation.learning.demo_io import LoadDemo
+    from fabric_imitation.learning.priors import load_priors
+
+    torch.set_num_threads(1)
+    priors = load_priors(priors_dir or DEFAULT_PRIORS)
+    rng = np.random.default_rng(seed)
+    errors = {kind: {f: [] for f in OCCLUDED_FRACTIONS} for kind in OCCLUSIONS}
+    frames = 0
+    for name in demo_names:
+        demo = LoadDemo(DEFAULT_DEMOS / name)
+        truth = np.load(demo.path / "ground_truth.npz")["keypoints_W"]
+        for mask, depth, p_W in zip(demo.mask, demo.depth, truth, strict=True):
+            frames += 1
+            for kind in OCCLUSIONS:
+                for f in OCCLUDED_FRACTIONS:
+                    hidden = Occlude(mask, f, kind, rng)
+                    if not hidden.any():
+                        continue
+                    est = priors.keypoints(hidden, depth)
+                    errors[kind][f].append(
+                        1000 * float(np.linalg.norm(est - p_W, axis=1).mean())
+                    )
+    table = {
+        kind: [
+            {
+                "occluded_fraction": f,
+                "frames": len(v),
+                "keypoint_error_mm_mean": round(float(np.mean(v)), 2),
+                "keypoint_error_mm_p90": round(float(np.percentile(v, 90)), 2),
+            }
+            for f, v in per.items()
+            if v
+        ]
+        for kind, per in errors.items()
+    }
+    summary = {
+        "benchmark": "occlusion",
+        "demos": list(demo_names),
+        "frames": frames,
+        "seed": seed,
+        "results": table,
+    }
+    if out is not None:
+        _write(Path(out), summary)
+        _plot_occlusion(table, Path(out).with_suffix(".png"))
+    return summary
+
+
+def _plot_occlusion(table: dict, path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(5, 3.2))
+    for kind, rows in table.items():
+        x = [100 * r["occluded_fraction"] for r in rows]
+        (line,) = ax.plot(
+            x, [r["keypoint_error_mm_mean"] for r in rows], "o-", label=f"{kind} (mean)"
+        )
+        ax.plot(
+            x,
+            [r["keypoint_error_mm_p90"] for r in rows],
+            "--",
+            color=line.get_color(),
+            alpha=0.6,
+            label=f"{kind} (90th percentile)",
+        )
+    ax.set_xlabel("fabric mask hidden [%]")
+    ax.set_ylabel("f_R keypoint error [mm]")
+    ax.legend(fontsize=7)
+    ax.grid(alpha=0.3)
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    plt.close(fig)

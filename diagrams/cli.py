@@ -58,6 +58,8 @@ DESCRIPTIONS = {
     "bench collect": "Collection rate with 1 and 2 workers.",
     "bench train": "Training throughput.",
     "bench mpc": "MPC control-step latency, idle and with one core loaded.",
+    "bench occlusion": "f_R's keypoint error as more of the fabric is hidden "
+    "(grippers, partial masks), on the shipped demos' frames.",
 }
 
 
@@ -630,6 +632,21 @@ def _bench_mpc(args) -> dict:
         steps=args.steps,
         out=args.out,
     )
+
+
+def _add_bench_occlusion(p):
+    p.add_argument("--priors", type=Path, default=None)
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument(
+        "--out", type=Path, default=None, help="also write the JSON (and a plot) here"
+    )
+
+
+@command("bench occlusion")(_add_bench_occlusion)
+def _bench_occlusion(args) -> dict:
+    from fabric_imitation.diagrams.bench import BenchOcclusion
+
+    return BenchOcclusion(priors_dir=args.priors, out=args.out, seed=args.seed)
 
 
 def _CheckArgs(args) -> None:

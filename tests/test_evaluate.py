@@ -208,3 +208,17 @@ def test_ray_and_local_evaluations_write_the_same_trials(tmp_path):
     assert len(rows("local.jsonl")) == 2
     assert rows("local.jsonl") == rows("ray.jsonl")
     assert local["results"] == remote["results"]
+
+
+def test_occlusion_hides_the_asked_fraction_of_the_fabric():
+    from fabric_imitation.diagrams.bench import Occlude
+
+    rng = np.random.default_rng(0)
+    mask = np.zeros((160, 160), np.uint8)
+    mask[40:120, 30:130] = 1
+    for kind in ("grippers", "side"):
+        for fraction in (0.0, 0.2, 0.5):
+            hidden = Occlude(mask, fraction, kind, rng)
+            lost = 1 - hidden.sum() / mask.sum()
+            assert fraction - 0.01 <= lost < fraction + 0.08, (kind, fraction, lost)
+            assert not np.any(hidden & (mask == 0))
