@@ -265,8 +265,8 @@ def _add_demo_import(p):
 
 @command("demo import")(_add_demo_import)
 def _demo_import(args) -> dict:
+    from fabric_imitation.diagrams.demo_record import ImportDemoForScenario
     from fabric_imitation.learning.demo_import import (
-        ImportDemo,
         MarkerSpec,
         ReadBag,
         ReadRecording,
@@ -298,10 +298,6 @@ def _demo_import(args) -> dict:
         size=args.marker_size or spec.size,
         offset=list(spec.offset),
     )
-    if marker.marker_id < 0:
-        raise InputError(
-            "no marker: give --marker-id or set object.marker in the scenario"
-        )
     table = None
     if args.table_marker_id is not None:
         table = {
@@ -312,7 +308,7 @@ def _demo_import(args) -> dict:
     hsv = None
     if args.fabric_hsv is not None:
         hsv = (tuple(args.fabric_hsv[:3]), tuple(args.fabric_hsv[3:]))
-    return ImportDemo(
+    return ImportDemoForScenario(
         recording=recording,
         scenario=scenario,
         scenario_name=args.scenario,

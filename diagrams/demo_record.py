@@ -157,3 +157,38 @@ def RecordDemo(
         "out": str(out),
         "recorded": True,
     }
+
+
+def ImportDemoForScenario(
+    *,
+    recording,
+    scenario: Scenario,
+    scenario_name: str,
+    out: Path,
+    marker=None,
+    step_seconds: float | None = None,
+    **kwargs,
+) -> dict:
+    """`fabric-imitate demo import`: learning/demo_import.py's `ImportDemo`
+    for `scenario`: its control camera, task and control period, and (unless
+    `marker` is given) the object's marker it describes."""
+    from fabric_imitation.learning.demo_import import ImportDemo, MarkerSpec
+
+    if marker is None:
+        spec = scenario.object.marker
+        marker = MarkerSpec(spec.dictionary, spec.id, spec.size, list(spec.offset))
+    if marker.marker_id < 0:
+        raise InputError(
+            "no marker: give --marker-id or set object.marker in the scenario"
+        )
+    return ImportDemo(
+        recording=recording,
+        camera=CameraModelFromConfig(scenario.camera),
+        task=scenario.task,
+        scenario_name=scenario_name,
+        scenario_yaml=DumpScenario(scenario),
+        step_seconds=step_seconds or scenario.motion.step_seconds,
+        out=out,
+        marker=marker,
+        **kwargs,
+    )

@@ -444,38 +444,43 @@ class MarkerSpec:
 def ImportDemo(
     *,
     recording: Recording,
-    scenario,
+    camera,
+    task: str,
     scenario_name: str,
+    scenario_yaml: str,
+    step_seconds: float,
     out: Path,
+    marker: MarkerSpec,
     hsv: tuple | None = None,
     masks: np.ndarray | None = None,
-    marker: MarkerSpec,
     table_marker: dict | None = None,
-    step_seconds: float | None = None,
     max_gap_seconds: float = 1.0,
 ) -> dict:
     """Builds the demo directory `out` from `recording` alone.
 
     Args:
+        camera: the control camera (a CameraModel: the size, intrinsics and
+            pose that f_R was trained with); the recording must be a whole
+            multiple of it (intrinsics scaled), and is scaled down to it.
+        task, scenario_name, scenario_yaml: what the demo shows and the
+            scenario it was recorded for (written into the demo).
+        step_seconds: the control period the demo learner expects; frames
+            are subsampled to it.
+        marker: the object's marker (dictionary, id, side, offset).
         hsv: (low, high) HSV bounds of the fabric's colour, or
         masks: (T, H, W) given fabric masks (a mask video's frames).
-        marker: the object's marker (dictionary, id, side, offset).
         table_marker: {"id", "size", "pose": [x, y, yaw_deg]} of a marker on
-            the table that gives the camera's pose (default: the scenario's).
-        step_seconds: the control period the demo learner expects (default:
-            the scenario's `motion.step_seconds`); frames are subsampled to it.
+            the table that gives the camera's pose (default: `camera`'s).
     Returns the summary written into the demo's manifest.
     """
     import cv2
-    from fabric_imitation.diagrams.station import CameraModelFromConfig
     from fabric_imitation.learning.demo_io import (
         CameraModel,
         ExistingDemoRequest,
         WriteDemo,
     )
-    from fabric_imitation.scenarios.loader import DumpScenario
 
-    if scenario.object.kind == "none":
+    if task == "prior":
         raise InputError(
             "the prior scene has no task to demonstrate; use box, hang, ..."
         )
@@ -483,7 +488,7 @@ def ImportDemo(
         raise InputError(f"output directory {out} already holds a demo")
     rec = recording
     T, H, W = rec.depth.shape
-    target = CameraModelFromConfig(scenario.camera)
+    target = camera
     # The control camera's images: the recording scaled down to its size.
     sx, sy = target.width / W, target.height / H
     K_scaled = rec.K * np.array([[sx], [sy], [1.0]])
@@ -572,7 +577,7 @@ def ImportDemo(
     gaps = _gaps(found)
     long_gap = max_gap_seconds * rec.fps
     # Subsample to the control period.
-    dt = step_seconds or scenario.motion.step_seconds
+    dt = step_seconds
     stride = max(1, int(round(rec.fps * dt)))
     chosen = list(range(0, T - 1, stride))
     # A person waits before starting and after letting go: keep one still
@@ -624,7 +629,7 @@ def ImportDemo(
             f"frame(s) {empty[:5]}"
         )
     request = {
-        "task": scenario.task,
+        "task": task,
         "scenario_name": scenario_name,
         "object_pose": [
             round(float(pose[0]), 6),
@@ -681,7 +686,7 @@ def ImportDemo(
         final_depth=final_depth.astype(np.float32),
         final_mask=final_mask,
         camera=camera,
-        scenario_yaml=DumpScenario(scenario),
+        scenario_yaml=scenario_yaml,
         ground_truth=None,
         summary=summary,
         fps=1.0 / dt,

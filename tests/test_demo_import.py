@@ -11,6 +11,7 @@ import sys
 import cv2
 import numpy as np
 import pytest
+from fabric_imitation.diagrams.demo_record import ImportDemoForScenario
 from fabric_imitation.diagrams.station import (
     MARKER_MARGIN_CELLS,
     CameraModelFromConfig,
@@ -18,8 +19,6 @@ from fabric_imitation.diagrams.station import (
     RawCameraConfig,
 )
 from fabric_imitation.learning.demo_import import (
-    ImportDemo,
-    MarkerSpec,
     ReadBag,
     ReadRecording,
     WriteRawRecording,
@@ -145,18 +144,15 @@ def raw(tmp_path_factory):
 
 
 def _import(raw_dir, out, hsv=HSV, **kwargs):
-    scenario = _scenario()
     recording = ReadRecording(
         raw_dir / "rgb.mp4", raw_dir / "depth", raw_dir / "intrinsics.yaml"
     )
-    spec = scenario.object.marker
-    return ImportDemo(
+    return ImportDemoForScenario(
         recording=recording,
-        scenario=scenario,
+        scenario=_scenario(),
         scenario_name="box_capture",
         out=out,
         hsv=None if "masks" in kwargs else hsv,
-        marker=MarkerSpec(spec.dictionary, spec.id, spec.size, list(spec.offset)),
         **kwargs,
     )
 
