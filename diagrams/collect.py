@@ -261,10 +261,11 @@ def _run_local(scenario_yaml, path, seed, episodes, workers, progress) -> None:
                 return
 
 
-def _run_ray(scenario_yaml, path, seed, episodes, workers, progress) -> None:
+def StartRay(workers: int):
+    """The `ray` module, started locally with `workers` CPUs unless a Ray is
+    already connected; a one-line InputError when Ray is not installed."""
     try:
         import ray
-        from ray.util import ActorPool
     except ImportError:
         raise InputError(
             "--executor ray needs the optional extra: "
@@ -272,6 +273,12 @@ def _run_ray(scenario_yaml, path, seed, episodes, workers, progress) -> None:
         ) from None
     if not ray.is_initialized():
         ray.init(num_cpus=workers, include_dashboard=False, log_to_driver=False)
+    return ray
+
+
+def _run_ray(scenario_yaml, path, seed, episodes, workers, progress) -> None:
+    ray = StartRay(workers)
+    from ray.util import ActorPool
 
     @ray.remote(num_cpus=1)
     class Worker:

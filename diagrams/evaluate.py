@@ -196,16 +196,10 @@ def _run_trial(job: dict) -> dict:
 def _RayTrials(jobs: list[dict], workers: int, prepared: dict):
     """Runs the trials on Ray actors (each learns nothing: it gets what was
     learned from the demos once); yields rows as they finish."""
-    try:
-        import ray
-        from ray.util import ActorPool
-    except ImportError:
-        raise InputError(
-            "--executor ray needs the optional extra: "
-            "pip install 'fabric-imitation[ray]'"
-        ) from None
-    if not ray.is_initialized():
-        ray.init(num_cpus=workers, include_dashboard=False, log_to_driver=False)
+    from fabric_imitation.diagrams.collect import StartRay
+
+    ray = StartRay(workers)
+    from ray.util import ActorPool
 
     @ray.remote(num_cpus=1)
     class TrialWorker:

@@ -779,9 +779,16 @@ def _add_people_camera(builder: DiagramBuilder, scenario: Scenario, scene_graph)
         background=scenario.camera.background,
         X_PB=Transform(LookAt(PEOPLE_CAMERA_EYE, PEOPLE_CAMERA_TARGET)),
     )
+    sensor = _add_sensor(builder, scene_graph, "people_camera", config)
+    builder.ExportOutput(sensor.color_image_output_port(), StationPorts.PEOPLE_RGB)
+
+
+def _add_sensor(builder: DiagramBuilder, scene_graph, name: str, config) -> RgbdSensor:
+    """An RgbdSensor named `name` fixed in the world where the CameraConfig
+    `config` puts it, connected to the scene graph."""
     color_camera, depth_camera = config.MakeCameras()
     sensor = builder.AddNamedSystem(
-        "people_camera",
+        name,
         RgbdSensor(
             parent_id=scene_graph.world_frame_id(),
             X_PB=config.X_PB.GetDeterministicValue(),
@@ -792,7 +799,7 @@ def _add_people_camera(builder: DiagramBuilder, scenario: Scenario, scene_graph)
     builder.Connect(
         scene_graph.get_query_output_port(), sensor.query_object_input_port()
     )
-    builder.ExportOutput(sensor.color_image_output_port(), StationPorts.PEOPLE_RGB)
+    return sensor
 
 
 def RawCameraConfig(scenario: Scenario, scale: int):
@@ -808,19 +815,8 @@ def RawCameraConfig(scenario: Scenario, scale: int):
 
 
 def _add_raw_camera(builder: DiagramBuilder, scenario: Scenario, scene_graph, scale):
-    config = RawCameraConfig(scenario, scale)
-    color_camera, depth_camera = config.MakeCameras()
-    sensor = builder.AddNamedSystem(
-        "raw_camera",
-        RgbdSensor(
-            parent_id=scene_graph.world_frame_id(),
-            X_PB=config.X_PB.GetDeterministicValue(),
-            color_camera=color_camera,
-            depth_camera=depth_camera,
-        ),
-    )
-    builder.Connect(
-        scene_graph.get_query_output_port(), sensor.query_object_input_port()
+    sensor = _add_sensor(
+        builder, scene_graph, "raw_camera", RawCameraConfig(scenario, scale)
     )
     builder.ExportOutput(sensor.color_image_output_port(), StationPorts.RAW_RGB)
     builder.ExportOutput(sensor.depth_image_32F_output_port(), StationPorts.RAW_DEPTH)

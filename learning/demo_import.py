@@ -474,11 +474,7 @@ def ImportDemo(
     Returns the summary written into the demo's manifest.
     """
     import cv2
-    from fabric_imitation.learning.demo_io import (
-        CameraModel,
-        ExistingDemoRequest,
-        WriteDemo,
-    )
+    from fabric_imitation.learning.demo_io import ExistingDemoRequest, WriteDemo
 
     if task == "prior":
         raise InputError(
@@ -667,15 +663,7 @@ def ImportDemo(
         else {"hsv_low": list(hsv[0]), "hsv_high": list(hsv[1])},
         "mask_area_fraction": [round(float(a), 4) for a in area],
     }
-    camera = CameraModel(
-        width=target.width,
-        height=target.height,
-        fx=target.fx,
-        fy=target.fy,
-        cx=target.cx,
-        cy=target.cy,
-        X_WC=X_WC,
-    )
+    camera = dc.replace(target, X_WC=X_WC)
     rgb_small = [small(rec.rgb[k], cv2.INTER_AREA) for k in [*chosen, T - 1]]
     WriteDemo(
         Path(out),

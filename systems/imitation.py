@@ -51,6 +51,23 @@ class PlanarPoseVector(LeafSystem):
         )
 
 
+def _DeclareCameraInputs(system: LeafSystem, width: int, height: int):
+    """The ``mask`` (ImageGrey8U), ``depth`` (ImageDepth32F) and
+    ``object_pose`` (RigidTransform) input ports of a system that reads the
+    station's camera."""
+    return (
+        system.DeclareAbstractInputPort(
+            "mask", AbstractValue.Make(ImageGrey8U(width, height))
+        ),
+        system.DeclareAbstractInputPort(
+            "depth", AbstractValue.Make(ImageDepth32F(width, height))
+        ),
+        system.DeclareAbstractInputPort(
+            "object_pose", AbstractValue.Make(RigidTransform())
+        ),
+    )
+
+
 class KeypointEstimator(LeafSystem):
     """f_R on the camera's fabric mask and depth -> M keypoints in the object
     frame, updated once per control step (periodic event).
@@ -81,15 +98,7 @@ class KeypointEstimator(LeafSystem):
     ):
         super().__init__()
         self._priors = priors
-        self._mask = self.DeclareAbstractInputPort(
-            "mask", AbstractValue.Make(ImageGrey8U(width, height))
-        )
-        self._depth = self.DeclareAbstractInputPort(
-            "depth", AbstractValue.Make(ImageDepth32F(width, height))
-        )
-        self._pose = self.DeclareAbstractInputPort(
-            "object_pose", AbstractValue.Make(RigidTransform())
-        )
+        self._mask, self._depth, self._pose = _DeclareCameraInputs(self, width, height)
         self._grippers = self.DeclareVectorInputPort("grippers", 6)
         self._corners = [corner_indices(num_keypoints)[k] for k in ("s1", "s2")]
         self._state = self.DeclareDiscreteState(3 * num_keypoints)
@@ -136,15 +145,7 @@ class ChamferToDemo(LeafSystem):
         super().__init__()
         self._camera = camera
         self._target = np.asarray(target_O, float)
-        self._mask = self.DeclareAbstractInputPort(
-            "mask", AbstractValue.Make(ImageGrey8U(width, height))
-        )
-        self._depth = self.DeclareAbstractInputPort(
-            "depth", AbstractValue.Make(ImageDepth32F(width, height))
-        )
-        self._pose = self.DeclareAbstractInputPort(
-            "object_pose", AbstractValue.Make(RigidTransform())
-        )
+        self._mask, self._depth, self._pose = _DeclareCameraInputs(self, width, height)
         self._state = self.DeclareDiscreteState(1)
         self.DeclarePeriodicDiscreteUpdateEvent(period, offset, self._update)
         self.DeclareStateOutputPort("chamfer", self._state)
