@@ -515,7 +515,6 @@ class CfmPlanner:
         gen = torch.Generator().manual_seed(seed)
         b = self.safety.max_step
         A = (torch.rand(self.num_samples, 6, generator=gen) * 2 - 1) * b
-        A[0] = 0.0
         ctx = dc.replace(self.ctx, frame_pose=np.asarray(pose, float))
         ok = valid_actions(S.expand(len(A), *S.shape), A, self.safety, ctx)
         if not ok.any():

@@ -205,3 +205,35 @@ def test_tcn_reward_is_aligned_in_time_and_ends_after_the_demo(trained):
     assert torch.equal(mpc._aligned(5), model.states[5])  # after the end: the last
     assert not mpc.finished(torch.tensor(demo[-1], dtype=torch.float32), 2)
     assert mpc.finished(torch.tensor(demo[-1], dtype=torch.float32), 5)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("controller", ["zero", "cfm", "tcn"])
+def test_each_shipped_baseline_acts_in_a_short_episode(controller):
+    """The shipped networks drive the station for a few steps on box (a
+    coarse cloth, a step cap of 7) and the episode is scored."""
+    from fabric_imitation.diagrams.imitation import (
+        DefaultDemoDir,
+        MakeImitationDiagram,
+        PrepareImitation,
+        RunEpisode,
+        ScoreEpisode,
+    )
+    from fabric_imitation.scenarios.loader import LoadScenario
+
+    scenario = LoadScenario(
+        scenario_name="box",
+        scenario_text="{cloth: {vbd: {resolution: [8, 8]}}, "
+        "mpc: {step_cap_factor: 0.1, num_samples: 100, max_iterations: 1}}",
+    )
+    prepared = PrepareImitation(
+        scenario, demo_dir=DefaultDemoDir("box", scenario), baselines=True
+    )
+    imitation = MakeImitationDiagram(scenario, prepared, controller=controller)
+    run = RunEpisode(imitation, settle_seconds=0.2)
+    summary = ScoreEpisode(scenario, prepared, run)
+    assert run.error is None
+    assert 1 <= summary["steps"] <= 7, summary
+    assert np.abs(run.logs["action"]).max() > 0.005
+    assert summary["termination"] in ("step cap", "classifier")
+    assert len(summary["chamfer_over_steps"]) == summary["steps"] + 1

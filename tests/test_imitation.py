@@ -12,7 +12,12 @@ from fabric_imitation.learning.demo_learning import (
 )
 from fabric_imitation.learning.mpc import Mpc, MpcConfig
 from fabric_imitation.learning.polygon import iou
-from fabric_imitation.learning.safety import SafetyConfig, SafetyContext, valid_actions
+from fabric_imitation.learning.safety import (
+    SafetyConfig,
+    SafetyContext,
+    rule_violations,
+    valid_actions,
+)
 from fabric_imitation.learning.state import world_to_object
 from fabric_imitation.systems.imitation import DemoReward, KeypointEstimator
 from pydrake.math import RigidTransform, RotationMatrix
@@ -363,3 +368,51 @@ def test_keypoint_estimator_system_outputs_object_frame_keypoints():
         dut.GetOutputPort("keypoints").Eval(context), expected.ravel(), atol=1e-6
     )
     assert priors.seen == [((24, 32), (24, 32))]
+
+
+def test_each_ablation_changes_only_what_it_names():
+    """No MPC applies the prior's first action; No Prior samples around zero
+    instead of around the prior; No Cost takes an action that breaks a rule
+    where ours refuses it (a demo that pushes the grasped edge back onto the
+    cloth: rule 2)."""
+    states = pulled_demo(n=8)
+    S = torch.as_tensor(states[0])
+
+    def mpc(**config):
+        return Mpc(
+            dynamics=Linear(),
+            demo=demo_model(states, tau_i=0.9),
+            safety=SafetyConfig(),
+            safety_ctx=CTX,
+            config=MpcConfig(
+                num_samples=200, horizon=3, elites=20, max_iterations=1, **config
+            ),
+        )
+
+    ours = mpc(sigma0=1e-4)
+    prior = ours.action_prior(S)[0]
+    assert float(prior.norm()) > 0.02  # a 3 cm pull towards -y
+    no_mpc = mpc(use_mpc=False).solve(S)
+    assert torch.equal(no_mpc.action, prior) and no_mpc.iterations == 0
+    assert torch.allclose(ours.solve(S).action, prior, atol=1e-3)
+    assert float(mpc(sigma0=1e-4, use_prior=False).solve(S).action.norm()) < 1e-3
+    # Back onto the cloth: the grasped corners move towards the far ones.
+    pushed = np.stack([square(0, 0.1 + 0.03 * j, 0.3, z=0.01) for j in range(8)])
+    S = torch.as_tensor(pushed[0])
+
+    def breaks_rule_2(result):
+        v = rule_violations(S, result.action, SafetyConfig(), CTX)
+        return bool(v["direction"])
+
+    def against(**config):
+        return Mpc(
+            dynamics=Linear(),
+            demo=demo_model(pushed, tau_i=0.9),
+            safety=SafetyConfig(),
+            safety_ctx=CTX,
+            config=MpcConfig(num_samples=200, horizon=3, elites=20, **config),
+        ).solve(S)
+
+    refused = against()
+    assert not refused.feasible or not breaks_rule_2(refused)
+    assert breaks_rule_2(against(use_cost=False))
