@@ -576,20 +576,41 @@ def ImportDemo(
     dt = step_seconds
     stride = max(1, int(round(rec.fps * dt)))
     chosen = list(range(0, T - 1, stride))
-    # A person waits before starting and after letting go: keep one still
-    # frame before the fabric first moves and none after it last moved (the
-    # last recorded frame is the demo's final observation).
-    moved = [
-        _mask_change(masks[chosen[i]], masks[chosen[i + 1]]) > STILL_CHANGE
-        for i in range(len(chosen) - 1)
+    # A person waits before starting and lets the cloth settle after letting
+    # go: the demo runs from one frame before the operator's hands start
+    # moving the fabric to the last frame in which they still did (hands:
+    # skin-coloured pixels above the table next to the fabric); the last
+    # recorded frame is the demo's final observation. Without hands in view,
+    # by the fabric's own motion (its mask changing by more than
+    # STILL_CHANGE per step).
+    hands = [
+        HandsOnFabric(rec.rgb[k], rec.depth[k], masks[k], rec.K, X_WC) for k in chosen
     ]
+    if sum(h is not None for h in hands) >= 2:
+        moved = [
+            a is not None
+            and b is not None
+            and float(np.linalg.norm(a - b)) > HANDS_MOVE_M
+            for a, b in zip(hands[:-1], hands[1:], strict=True)
+        ]
+        trim_by = "the hands on the fabric"
+    else:
+        moved = [
+            _mask_change(masks[chosen[i]], masks[chosen[i + 1]]) > STILL_CHANGE
+            for i in range(len(chosen) - 1)
+        ]
+        trim_by = "the fabric's mask"
     if any(moved):
         first = moved.index(True)
         last = len(moved) - 1 - moved[::-1].index(True)
-        trimmed = {"leading": first, "trailing": len(chosen) - (last + 2)}
+        trimmed = {
+            "by": trim_by,
+            "leading": first,
+            "trailing": len(chosen) - (last + 2),
+        }
         chosen = chosen[first : last + 2]
     else:
-        trimmed = {"leading": 0, "trailing": 0}
+        trimmed = {"by": trim_by, "leading": 0, "trailing": 0}
     # Frames inside a long gap of the marker are reported; the object is
     # fixed, so its pose (the median of the detections) still holds there.
     in_long_gap = [
@@ -687,6 +708,35 @@ def ImportDemo(
         "mask_area_fraction_max": round(float(area.max()), 4),
         "out": str(out),
     }
+
+
+# The operator's hands: skin-coloured pixels this high above the table
+# [m] (a table's wood can have skin's colour) within HANDS_NEAR_PX of the
+# fabric; they act while they move more than HANDS_MOVE_M per control step.
+HANDS_MIN_HEIGHT_M = 0.01
+HANDS_NEAR_PX = 12
+HANDS_MOVE_M = 0.005
+
+
+def HandsOnFabric(rgb, depth, mask, K, X_WC) -> np.ndarray | None:
+    """Mean world position [m] of the operator's hands in a frame (skin-
+    coloured pixels above the table), or None when there are none or none
+    of them within HANDS_NEAR_PX of the fabric."""
+    import cv2
+
+    h, w = depth.shape
+    v, u = np.mgrid[0:h, 0:w]
+    d = np.nan_to_num(depth, nan=np.inf)
+    p_C = np.stack([(u - K[0, 2]) / K[0, 0] * d, (v - K[1, 2]) / K[1, 1] * d, d], -1)
+    z_W = p_C @ X_WC[2, :3] + X_WC[2, 3]
+    hands = SkinMask(rgb) & np.isfinite(z_W) & (z_W > HANDS_MIN_HEIGHT_M)
+    hands &= mask == 0
+    if hands.sum() < 20:
+        return None
+    kernel = np.ones((2 * HANDS_NEAR_PX + 1,) * 2, np.uint8)
+    if not (hands & (cv2.dilate(mask.astype(np.uint8), kernel) > 0)).any():
+        return None
+    return (p_C[hands] @ X_WC[:3, :3].T + X_WC[:3, 3]).mean(0)
 
 
 # A subsampled frame counts as still when its fabric mask changed by at most
