@@ -51,8 +51,10 @@ def _object_to_world(p_O, pose=POSE):
     ]
 
 
-def synthetic_recording(frames=12):
-    """Frames, depths [m], true masks and the raw camera's intrinsics."""
+def synthetic_recording(frames=12, release_at=None):
+    """Frames, depths [m], true masks and the raw camera's intrinsics. The
+    hands (3 cm above the cloth's near corners) carry it; from frame
+    `release_at` on they stay where they let go while the cloth slides on."""
     scenario = _scenario()
     cam = CameraModelFromConfig(RawCameraConfig(scenario, SCALE))
     K = np.array([[cam.fx, 0, cam.cx], [0, cam.fy, cam.cy], [0, 0, 1.0]])
@@ -117,10 +119,14 @@ def synthetic_recording(frames=12):
         cv2.fillPoly(mask, [poly(cloth)], 1, shift=4)
         image[mask > 0] = GREEN
         d[mask > 0] = 0.996
-        for corner in cloth[:2]:
-            centre = np.round(project(corner[None] + [0, 0, 0.03])[0]).astype(int)
-            cv2.circle(image, tuple(centre.tolist()), 9 * SCALE, SKIN, -1)
-            cv2.circle(mask, tuple(centre.tolist()), 9 * SCALE, 0, -1)
+        held = y0 if release_at is None else 0.15 - 0.02 * min(k, release_at)
+        for x in (-0.15, 0.15):
+            centre = np.round(project([[x, held - 0.15, 0.034]])[0]).astype(int)
+            hand = np.zeros((H, W), np.uint8)
+            cv2.circle(hand, tuple(centre.tolist()), 9 * SCALE, 1, -1)
+            image[hand > 0] = SKIN
+            d[hand > 0] = 0.966
+            mask[hand > 0] = 0
         rgb.append(image)
         depth.append(d)
         masks.append(mask)
@@ -344,7 +350,7 @@ def test_bad_recordings_get_one_line_errors_and_no_demo(raw, tmp_path):
     moved.rename(last)
     # A colour box that catches nothing; a mask video that covers everything.
     with pytest.raises(InputError, match="the fabric mask is empty in"):
-        _import(bad, out, hsv=((0, 0, 0), (1, 1, 1)))
+        _import(bad, out, hsv=((150, 200, 200), (160, 255, 255)))
     no_demo()
     WriteVideo(tmp_path / "masks.mp4", [np.full((320, 320, 3), 255, np.uint8)] * 12, 15)
     from fabric_imitation.learning.demo_import import ReadVideo
@@ -374,3 +380,17 @@ def test_bad_recordings_get_one_line_errors_and_no_demo(raw, tmp_path):
         ReadBag(
             tmp_path / "none.bag", color_topic="/c", depth_topic="/d", info_topic="/i"
         )
+
+
+def test_the_demo_ends_when_the_hands_stop_moving_the_cloth(tmp_path):
+    """Frames after the operator's hands stop (the cloth settling on) are not
+    demo steps; the last recorded frame stays the final observation."""
+    rgb, depth, _, intrinsics = synthetic_recording(frames=18, release_at=9)
+    WriteRawRecording(
+        tmp_path / "raw", rgb=rgb, depth=depth, fps=15.0, intrinsics=intrinsics
+    )
+    summary = _import(tmp_path / "raw", tmp_path / "demo")
+    sub = summary["subsampling"]
+    assert sub["still_frames_dropped"]["by"] == "the hands on the fabric"
+    assert sub["frames"] == [0, 3, 6, 9], sub
+    assert sub["final_frame"] == 17
