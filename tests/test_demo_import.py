@@ -27,7 +27,7 @@ from fabric_imitation.learning.demo_io import LoadDemo
 from fabric_imitation.learning.errors import InputError
 from fabric_imitation.scenarios.loader import LoadScenario
 
-SCALE = 2  # the recording is 2x the control camera's 160 px
+SCALE = 4  # the recording is 4x the control camera's 160 px, as export-raw
 POSE = (0.03, -0.12, 25.0)  # the object's true pose [m, m, deg]
 HSV = ((45, 80, 40), (90, 255, 255))
 TABLE, BOX, GREEN, SKIN = (184, 143, 102), (64, 89, 191), (38, 158, 77), (222, 168, 138)
@@ -51,10 +51,14 @@ def _object_to_world(p_O, pose=POSE):
     ]
 
 
-def synthetic_recording(frames=12, release_at=None):
+TABLE_MARKER = {"id": 3, "size": 0.08, "pose": [-0.25, 0.28, 10.0]}
+
+
+def synthetic_recording(frames=12, release_at=None, table_marker=False):
     """Frames, depths [m], true masks and the raw camera's intrinsics. The
     hands (3 cm above the cloth's near corners) carry it; from frame
-    `release_at` on they stay where they let go while the cloth slides on."""
+    `release_at` on they stay where they let go while the cloth slides on.
+    With `table_marker`, TABLE_MARKER lies on the table too."""
     scenario = _scenario()
     cam = CameraModelFromConfig(RawCameraConfig(scenario, SCALE))
     K = np.array([[cam.fx, 0, cam.cx], [0, cam.fy, cam.cy], [0, 0, 1.0]])
@@ -97,6 +101,23 @@ def synthetic_recording(frames=12, release_at=None):
         top = np.zeros((H, W), np.uint8)
         cv2.fillPoly(top, [poly(box)], 1, shift=4)
         d[top > 0] = 0.94
+        if table_marker:
+            t = TABLE_MARKER
+            sheet = cv2.cvtColor(
+                cv2.imread(str(MarkerTexture(marker.dictionary, t["id"]))),
+                cv2.COLOR_BGR2RGB,
+            )
+            g = t["size"] * (cells + 2 * MARKER_MARGIN_CELLS) / cells / 2
+            corners = _object_to_world(
+                [[-g, g, 0.0], [g, g, 0.0], [g, -g, 0.0], [-g, -g, 0.0]], t["pose"]
+            )
+            sw, sh = sheet.shape[1], sheet.shape[0]
+            M = cv2.getPerspectiveTransform(
+                np.float32([[0, 0], [sw, 0], [sw, sh], [0, sh]]),
+                np.float32(project(corners)),
+            )
+            on = cv2.warpPerspective(np.ones((sh, sw), np.uint8), M, (W, H)) > 0
+            image[on] = cv2.warpPerspective(sheet, M, (W, H))[on]
         tw, th = texture.shape[1], texture.shape[0]
         M = cv2.getPerspectiveTransform(
             np.float32([[0, 0], [tw, 0], [tw, th], [0, th]]),
@@ -270,7 +291,7 @@ def test_a_ros2_bag_round_trips(tmp_path):
     rgb, depth, _, intrinsics = synthetic_recording(frames=6)
     _bag(tmp_path / "bag", rgb, depth, intrinsics)
     rec = ReadBag(tmp_path / "bag", color_topic="/c", depth_topic="/d", info_topic="/i")
-    assert rec.rgb.shape == (6, 320, 320, 3)
+    assert rec.rgb.shape == (6, 160 * SCALE, 160 * SCALE, 3)
     np.testing.assert_array_equal(rec.rgb[3], rgb[3])
     np.testing.assert_allclose(rec.depth[3], depth[3], atol=1e-3)
     assert rec.intrinsics["fx"] == pytest.approx(intrinsics["fx"])
@@ -352,7 +373,8 @@ def test_bad_recordings_get_one_line_errors_and_no_demo(raw, tmp_path):
     with pytest.raises(InputError, match="the fabric mask is empty in"):
         _import(bad, out, hsv=((150, 200, 200), (160, 255, 255)))
     no_demo()
-    WriteVideo(tmp_path / "masks.mp4", [np.full((320, 320, 3), 255, np.uint8)] * 12, 15)
+    white = [np.full((160 * SCALE,) * 2 + (3,), 255, np.uint8)] * 12
+    WriteVideo(tmp_path / "masks.mp4", white, 15)
     from fabric_imitation.learning.demo_import import ReadVideo
 
     white = ReadVideo(tmp_path / "masks.mp4")[0].max(axis=3) > 127
@@ -370,8 +392,8 @@ def test_bad_recordings_get_one_line_errors_and_no_demo(raw, tmp_path):
         yaml.safe_dump({x: v for x, v in k.items() if x != "fx"})
     )
     fails("missing fx")
-    (bad / "intrinsics.yaml").write_text(yaml.safe_dump({**k, "width": 640}))
-    fails("are for 640 x 320 images")
+    (bad / "intrinsics.yaml").write_text(yaml.safe_dump({**k, "width": 999}))
+    fails(f"are for 999 x {160 * SCALE} images")
     (bad / "intrinsics.yaml").write_text(yaml.safe_dump({**k, "fx": k["fx"] * 1.5}))
     fails("do not match the scenario's camera")
     (bad / "intrinsics.yaml").write_text(good)
@@ -394,3 +416,35 @@ def test_the_demo_ends_when_the_hands_stop_moving_the_cloth(tmp_path):
     assert sub["still_frames_dropped"]["by"] == "the hands on the fabric"
     assert sub["frames"] == [0, 3, 6, 9], sub
     assert sub["final_frame"] == 17
+
+
+def test_a_marker_on_the_table_gives_the_camera_pose(tmp_path):
+    from fabric_imitation.learning.demo_import import (
+        CameraPoseFromTableMarker,
+        DetectMarker,
+    )
+
+    rgb, depth, _, intrinsics = synthetic_recording(frames=4, table_marker=True)
+    truth = CameraModelFromConfig(RawCameraConfig(_scenario(), SCALE))
+    K = np.array(
+        [
+            [intrinsics["fx"], 0, intrinsics["cx"]],
+            [0, intrinsics["fy"], intrinsics["cy"]],
+            [0, 0, 1],
+        ]
+    )
+    corners = DetectMarker(rgb[0], "DICT_4X4_50", TABLE_MARKER["id"])
+    X_WC = CameraPoseFromTableMarker(
+        corners, K, TABLE_MARKER["size"], TABLE_MARKER["pose"], depth=depth[0]
+    )
+    assert np.linalg.norm(X_WC[:3, 3] - truth.X_WC[:3, 3]) < 0.02, X_WC
+    R = X_WC[:3, :3].T @ truth.X_WC[:3, :3]
+    assert math.degrees(math.acos(np.clip((np.trace(R) - 1) / 2, -1, 1))) < 1.0, R
+    WriteRawRecording(
+        tmp_path / "raw", rgb=rgb, depth=depth, fps=15.0, intrinsics=intrinsics
+    )
+    summary = _import(tmp_path / "raw", tmp_path / "demo", table_marker=TABLE_MARKER)
+    assert summary["camera_pose_from"].startswith("table marker 3")
+    x, y, yaw = LoadDemo(tmp_path / "demo").object_pose
+    assert math.hypot(x - POSE[0], y - POSE[1]) < 0.005
+    assert abs(math.degrees(yaw) - POSE[2]) < 2.0
