@@ -86,6 +86,11 @@ def RecordDemo(
             "out": str(out),
             "recorded": False,
         }
+    # Checked before the run, so a full raw directory does not cost a run.
+    raw_dir = Path(export_raw) if export_raw is not None else None
+    full = raw_dir is not None and raw_dir.exists()
+    if full and (not raw_dir.is_dir() or any(raw_dir.iterdir())):
+        raise InputError(f"raw output directory {export_raw} is not empty")
     plan = ScriptedDemoPlan(scenario)
     meshcat = MakeRecordingMeshcat() if record else None
     run = OpenLoopRun(

@@ -448,3 +448,19 @@ def test_a_marker_on_the_table_gives_the_camera_pose(tmp_path):
     x, y, yaw = LoadDemo(tmp_path / "demo").object_pose
     assert math.hypot(x - POSE[0], y - POSE[1]) < 0.005
     assert abs(math.degrees(yaw) - POSE[2]) < 2.0
+
+
+def test_a_full_raw_directory_is_refused_before_the_run(tmp_path):
+    from fabric_imitation.diagrams.demo_record import RecordDemo
+
+    (tmp_path / "raw").mkdir()
+    (tmp_path / "raw" / "old.png").write_bytes(b"")
+    with pytest.raises(InputError, match="raw output directory .* is not empty"):
+        RecordDemo(
+            scenario=_scenario(),
+            scenario_name="box_capture",
+            out=tmp_path / "demo",
+            export_raw=tmp_path / "raw",
+            progress=False,
+        )
+    assert not (tmp_path / "demo").exists()
