@@ -24,6 +24,7 @@ pose from the scenario, or from a second marker lying on the table.
 """
 
 import dataclasses as dc
+import functools
 import math
 from pathlib import Path
 
@@ -315,18 +316,33 @@ def FabricMask(rgb: np.ndarray, hsv_low, hsv_high) -> np.ndarray:
 # --- markers ---------------------------------------------------------------
 
 
+@functools.cache
+def _Detector(dictionary: str):
+    """One ArUco detector per dictionary (sub-pixel corners), made once."""
+    import cv2
+
+    aruco = cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, dictionary))
+    params = cv2.aruco.DetectorParameters()
+    params.cornerRefinementMethod = cv2.aruco.CORNER_REFINE_SUBPIX
+    return cv2.aruco.ArucoDetector(aruco, params)
+
+
+def _PointsC(u, v, depth, K) -> np.ndarray:
+    """Camera-frame points (..., 3) of pixels (u, v) at `depth` (along the
+    optical axis)."""
+    return np.stack(
+        [(u - K[0, 2]) / K[0, 0] * depth, (v - K[1, 2]) / K[1, 1] * depth, depth], -1
+    )
+
+
 def DetectMarker(rgb: np.ndarray, dictionary: str, marker_id: int) -> np.ndarray | None:
     """The 4 corners (4, 2) [px] of marker `marker_id` (OpenCV's order:
     top-left, top-right, bottom-right, bottom-left of the printed marker),
     or None."""
     import cv2
 
-    aruco = cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, dictionary))
-    params = cv2.aruco.DetectorParameters()
-    params.cornerRefinementMethod = cv2.aruco.CORNER_REFINE_SUBPIX
-    detector = cv2.aruco.ArucoDetector(aruco, params)
     gray = cv2.cvtColor(rgb, cv2.COLOR_RGB2GRAY)
-    corners, ids, _ = detector.detectMarkers(gray)
+    corners, ids, _ = _Detector(dictionary).detectMarkers(gray)
     if ids is None:
         return None
     for c, i in zip(corners, ids.ravel(), strict=True):
@@ -382,8 +398,7 @@ def CameraPoseFromTableMarker(corners, K, size: float, pose_W, depth=None):
         v, u = np.nonzero((inside > 0) & np.isfinite(depth))
         if len(v) < 20:
             raise InputError("the table marker has too few depth readings")
-        pts = np.c_[(u - K[0, 2]) / K[0, 0], (v - K[1, 2]) / K[1, 1], np.ones(len(u))]
-        pts *= depth[v, u][:, None]
+        pts = _PointsC(u, v, depth[v, u], K)
         centre = pts.mean(0)
         normal = np.linalg.svd(pts - centre)[2][2]
         p_C = rays * ((centre @ normal) / (rays @ normal))[:, None]
@@ -762,7 +777,7 @@ def HandsOnFabric(rgb, depth, mask, K, X_WC) -> np.ndarray | None:
     h, w = depth.shape
     v, u = np.mgrid[0:h, 0:w]
     d = np.nan_to_num(depth, nan=np.inf)
-    p_C = np.stack([(u - K[0, 2]) / K[0, 0] * d, (v - K[1, 2]) / K[1, 1] * d, d], -1)
+    p_C = _PointsC(u, v, d, K)
     z_W = p_C @ X_WC[2, :3] + X_WC[2, 3]
     hands = SkinMask(rgb) & np.isfinite(z_W) & (z_W > HANDS_MIN_HEIGHT_M)
     hands &= mask == 0
