@@ -287,19 +287,32 @@ def SkinMask(rgb: np.ndarray) -> np.ndarray:
 # in shadow: a fold's inside, or (in simulation) the cloth's back faces,
 # which the renderer draws black; their hue says nothing.
 DARK_VALUE = 40
+# ... but only where they stand this high [m] above the table, when the
+# depth says so: a dark patch on the table next to the fabric is its shadow
+# (or the table's own colour), not fabric. Kept, a hanging towel's last
+# frame gained table pixels whose depth put its grasped corner on the table
+# (simulated hang recording: z 0.001 m where the renderer's mask says 0.15).
+DARK_MIN_HEIGHT_M = 0.005
 
 
-def FabricMask(rgb: np.ndarray, hsv_low, hsv_high) -> np.ndarray:
+def FabricMask(
+    rgb: np.ndarray, hsv_low, hsv_high, height: np.ndarray | None = None
+) -> np.ndarray:
     """The fabric's mask (H, W) uint8 {0, 1} from an RGB frame: pixels in the
     HSV box [hsv_low, hsv_high] (OpenCV ranges: H 0-179, S and V 0-255) and
-    dark pixels next to them (DARK_VALUE), skin removed, opened and closed
-    with a 3 x 3 kernel, the largest connected component kept."""
+    dark pixels next to them (DARK_VALUE; with `height`, the pixels' height
+    above the table [m], only those above DARK_MIN_HEIGHT_M), skin removed,
+    opened and closed with a 3 x 3 kernel, the largest connected component
+    kept."""
     import cv2
 
     hsv = cv2.cvtColor(rgb, cv2.COLOR_RGB2HSV)
     mask = cv2.inRange(hsv, np.array(hsv_low, np.uint8), np.array(hsv_high, np.uint8))
     near = cv2.dilate(mask, np.ones((7, 7), np.uint8)) > 0
-    mask[near & (hsv[:, :, 2] < DARK_VALUE)] = 255
+    dark = near & (hsv[:, :, 2] < DARK_VALUE)
+    if height is not None:
+        dark &= np.nan_to_num(height, nan=np.inf) > DARK_MIN_HEIGHT_M
+    mask[dark] = 255
     mask[SkinMask(rgb)] = 0
     kernel = np.ones((3, 3), np.uint8)
     mask = cv2.morphologyEx(mask, cv2.MORPH_OPEN, kernel)
@@ -572,7 +585,12 @@ def ImportDemo(
     if masks is None:
         if hsv is None:
             raise InputError("give --fabric-hsv LOW HIGH or --mask-video")
-        masks = np.stack([FabricMask(f, *hsv) for f in rec.rgb])
+        masks = np.stack(
+            [
+                FabricMask(f, *hsv, height=HeightAboveTable(d, rec.K, X_WC))
+                for f, d in zip(rec.rgb, rec.depth, strict=True)
+            ]
+        )
     else:
         masks = (np.asarray(masks) > 0).astype(np.uint8)
         if masks.shape != (T, H, W):
@@ -766,6 +784,16 @@ def ImportDemo(
 HANDS_MIN_HEIGHT_M = 0.01
 HANDS_NEAR_PX = 12
 HANDS_MOVE_M = 0.005
+
+
+def HeightAboveTable(depth: np.ndarray, K: np.ndarray, X_WC: np.ndarray) -> np.ndarray:
+    """Each pixel's world height [m] (H, W) from a depth image [m] (inf
+    where there is no reading)."""
+    h, w = depth.shape
+    v, u = np.mgrid[0:h, 0:w]
+    p_C = _PointsC(u, v, np.nan_to_num(depth, nan=np.inf), K)
+    with np.errstate(invalid="ignore"):
+        return p_C @ X_WC[2, :3] + X_WC[2, 3]
 
 
 def HandsOnFabric(rgb, depth, mask, K, X_WC) -> np.ndarray | None:

@@ -464,3 +464,25 @@ def test_a_full_raw_directory_is_refused_before_the_run(tmp_path):
             progress=False,
         )
     assert not (tmp_path / "demo").exists()
+
+
+def test_a_shadow_on_the_table_is_not_fabric():
+    """Dark pixels next to the fabric are fabric in shadow (a fold's inside)
+    only above the table: with the depth's heights, a dark patch lying on
+    the table beside the cloth is left out, a dark fold above it kept."""
+    from fabric_imitation.learning.demo_import import FabricMask
+
+    rgb = np.zeros((60, 90, 3), np.uint8)
+    rgb[:] = TABLE
+    height = np.zeros((60, 90))
+    rgb[20:40, 20:50] = GREEN  # the cloth, 10 cm up
+    height[20:40, 20:50] = 0.10
+    rgb[20:40, 50:53] = (10, 10, 10)  # a dark fold, 5 cm up
+    height[20:40, 50:53] = 0.05
+    rgb[20:40, 17:20] = (10, 10, 10)  # its shadow on the table
+    mask = FabricMask(rgb, *HSV, height=height)
+    assert mask[20:40, 20:53].all()
+    assert not mask[:, :20].any()
+    # Without depth both dark strips count, as before.
+    blind = FabricMask(rgb, *HSV)
+    assert blind[22:38, 17:20].all() and blind[20:40, 50:53].all()
