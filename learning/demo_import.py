@@ -231,7 +231,8 @@ def ReadBag(
     rgb = np.stack([im for _, im in color])
     d = np.stack(pairs).astype(np.float32)
     d[~(d > 0)] = np.nan
-    K = np.asarray(info.k, float).reshape(3, 3)
+    # ROS 2 names the matrix `k`, ROS 1 `K`.
+    K = np.asarray(info.k if hasattr(info, "k") else info.K, float).reshape(3, 3)
     intrinsics = {
         "width": int(info.width),
         "height": int(info.height),

@@ -210,17 +210,29 @@ def test_import_rebuilds_the_masks_and_the_marker_pose(raw, tmp_path):
     assert demo.manifest["source"] == "import"
 
 
-def _bag(path, rgb, depth, intrinsics, *, topics=("/c", "/d", "/i")):
-    from rosbags.rosbag2 import Writer
+def _bag(path, rgb, depth, intrinsics, *, topics=("/c", "/d", "/i"), ros=2):
+    """Writes a ROS `ros` (1: a .bag file, 2: a bag directory) bag as a
+    camera driver records one."""
     from rosbags.typesys import Stores, get_typestore
 
-    store = get_typestore(Stores.ROS2_HUMBLE)
+    if ros == 1:
+        from rosbags.rosbag1 import Writer
+
+        store = get_typestore(Stores.ROS1_NOETIC)
+        serialize = store.serialize_ros1
+        open_writer = Writer(path)
+    else:
+        from rosbags.rosbag2 import Writer
+
+        store = get_typestore(Stores.ROS2_HUMBLE)
+        serialize = store.serialize_cdr
+        open_writer = Writer(path, version=8)
     Image = store.types["sensor_msgs/msg/Image"]
     Info = store.types["sensor_msgs/msg/CameraInfo"]
     Header = store.types["std_msgs/msg/Header"]
     Time = store.types["builtin_interfaces/msg/Time"]
     Roi = store.types["sensor_msgs/msg/RegionOfInterest"]
-    with Writer(path, version=8) as writer:
+    with open_writer as writer:
         conns = [
             writer.add_connection(t, m, typestore=store)
             for t, m in zip(
@@ -232,8 +244,11 @@ def _bag(path, rgb, depth, intrinsics, *, topics=("/c", "/d", "/i")):
         W, H = intrinsics["width"], intrinsics["height"]
         for k, (c, d) in enumerate(zip(rgb, depth, strict=True)):
             ns = int(k * 1e9 / 15)
-            header = Header(
-                stamp=Time(sec=ns // 10**9, nanosec=ns % 10**9), frame_id="cam"
+            stamp = Time(sec=ns // 10**9, nanosec=ns % 10**9)
+            header = (
+                Header(seq=k, stamp=stamp, frame_id="cam")
+                if ros == 1
+                else Header(stamp=stamp, frame_id="cam")
             )
             color = Image(
                 header=header,
@@ -254,8 +269,8 @@ def _bag(path, rgb, depth, intrinsics, *, topics=("/c", "/d", "/i")):
                 step=2 * W,
                 data=mm.view(np.uint8).ravel(),
             )
-            writer.write(conns[0], ns, store.serialize_cdr(color, Image.__msgtype__))
-            writer.write(conns[1], ns, store.serialize_cdr(dep, Image.__msgtype__))
+            writer.write(conns[0], ns, serialize(color, Image.__msgtype__))
+            writer.write(conns[1], ns, serialize(dep, Image.__msgtype__))
             if k == 0:
                 K = [
                     intrinsics["fx"],
@@ -268,38 +283,44 @@ def _bag(path, rgb, depth, intrinsics, *, topics=("/c", "/d", "/i")):
                     0,
                     1,
                 ]
+                # ROS 1 spells the matrices in capitals.
+                matrices = {
+                    "d": np.zeros(5),
+                    "k": np.array(K, float),
+                    "r": np.eye(3).ravel(),
+                    "p": np.zeros(12),
+                }
+                if ros == 1:
+                    matrices = {key.upper(): v for key, v in matrices.items()}
                 info = Info(
                     header=header,
                     height=H,
                     width=W,
                     distortion_model="plumb_bob",
-                    d=np.zeros(5),
-                    k=np.array(K, float),
-                    r=np.eye(3).ravel(),
-                    p=np.zeros(12),
+                    **matrices,
                     binning_x=0,
                     binning_y=0,
                     roi=Roi(
                         x_offset=0, y_offset=0, height=0, width=0, do_rectify=False
                     ),
                 )
-                writer.write(conns[2], ns, store.serialize_cdr(info, Info.__msgtype__))
+                writer.write(conns[2], ns, serialize(info, Info.__msgtype__))
 
 
-def test_a_ros2_bag_round_trips(tmp_path):
+@pytest.mark.parametrize("ros", [1, 2])
+def test_a_ros_bag_round_trips(tmp_path, ros):
     pytest.importorskip("rosbags")
     rgb, depth, _, intrinsics = synthetic_recording(frames=6)
-    _bag(tmp_path / "bag", rgb, depth, intrinsics)
-    rec = ReadBag(tmp_path / "bag", color_topic="/c", depth_topic="/d", info_topic="/i")
+    bag = tmp_path / ("run.bag" if ros == 1 else "bag")
+    _bag(bag, rgb, depth, intrinsics, ros=ros)
+    rec = ReadBag(bag, color_topic="/c", depth_topic="/d", info_topic="/i")
     assert rec.rgb.shape == (6, 160 * SCALE, 160 * SCALE, 3)
     np.testing.assert_array_equal(rec.rgb[3], rgb[3])
     np.testing.assert_allclose(rec.depth[3], depth[3], atol=1e-3)
     assert rec.intrinsics["fx"] == pytest.approx(intrinsics["fx"])
     assert rec.fps == pytest.approx(15.0, rel=1e-3)
     with pytest.raises(InputError, match="has no topic /nope"):
-        ReadBag(
-            tmp_path / "bag", color_topic="/nope", depth_topic="/d", info_topic="/i"
-        )
+        ReadBag(bag, color_topic="/nope", depth_topic="/d", info_topic="/i")
 
 
 def _cli(*args):
