@@ -289,10 +289,11 @@ def SkinMask(rgb: np.ndarray) -> np.ndarray:
 # which the renderer draws black; their hue says nothing.
 DARK_VALUE = 40
 # ... but only where they stand this high [m] above the table, when the
-# depth says so: a dark patch on the table next to the fabric is its shadow
-# (or the table's own colour), not fabric. Kept, a hanging towel's last
-# frame gained table pixels whose depth put its grasped corner on the table
-# (simulated hang recording: z 0.001 m where the renderer's mask says 0.15).
+# depth says so: a dark patch on the table next to the fabric (a shadow, a
+# marker's black border) is not fabric. Kept, a hanging towel's last frame
+# gained the border of the marker plaque beside it, whose depth put its
+# grasped corner on the table (simulated hang recording: z 0.001 m, the
+# renderer's mask gives 0.156 m).
 DARK_MIN_HEIGHT_M = 0.005
 
 
