@@ -104,6 +104,8 @@ def ObjectSafetyContext(
         object_size=_object_size(scenario),
         frame_pose=np.array(PlanarPose.FromDegrees(scenario.object.pose)),
         far_corners_may_hang=estimated and scenario.safety.hidden_corners_hang,
+        far_corners_may_drape=estimated and scenario.safety.hidden_corners_drape,
+        side_length=scenario.cloth.size[1],
     )
 
 

@@ -33,6 +33,12 @@ class SafetyConfig:
     # seed 0: true-cloth rule breaks 53 -> 16 per 10 trials, successes
     # 10 -> 7 (README). Rule breaks are always scored without it.
     hidden_corners_hang: bool = True
+    # The controller's view only, as above: once the cloth lies on the
+    # object's top (a keypoint within DRAPE_MARGIN of the top face), judge
+    # rule 2 also with each far corner hanging down the object's far side,
+    # where a side draped over the object puts it out of the camera's sight
+    # (SafetyContext.far_corners_may_drape).
+    hidden_corners_drape: bool = True
 
     def __post_init__(self):
         if not 0 < self.tau_c < self.tau_f:
@@ -67,7 +73,19 @@ class SafetyContext:
     # and all the way to the surface below it (table or object top), so an
     # action passes only if it passes wherever the corner may hang.
     far_corners_may_hang: bool = False
+    # ... and may lie across the object: with part of the cloth on the
+    # object's top, a side draped over it from the grasped corner hangs down
+    # the far face, its far corner under the cloth (`_draped`). Needs
+    # object_size.
+    far_corners_may_drape: bool = False
+    # Rest length [m] of the sides s1-s3 and s2-s4 (None: edge_length).
+    side_length: float | None = None
 
+
+# A keypoint this close [m] to the object's top face (within its footprint
+# grown by as much, at most this far above or below the top) puts the cloth
+# on it.
+DRAPE_MARGIN = 0.03
 
 RULES = ("bounds", "distance", "direction", "workspace", "object")
 
@@ -113,6 +131,10 @@ def rule_violations(
                 | bad_direction(a_l, s1 - s3d)
                 | bad_direction(a_r, s2 - s4d)
             )
+    if ctx.far_corners_may_drape and ctx.object_size is not None:
+        for a, g in ((a_l, s1), (a_r, s2)):
+            far, applies = _draped(S, g, ctx)
+            out["direction"] = out["direction"] | (applies & bad_direction(a, g - far))
     lo = torch.as_tensor(ctx.workspace_lower, dtype=S.dtype)
     hi = torch.as_tensor(ctx.workspace_upper, dtype=S.dtype)
     grippers = torch.stack([s1n, s2n], -2)
@@ -166,6 +188,53 @@ def _dropped(p: torch.Tensor, fraction: float, ctx: SafetyContext) -> torch.Tens
         floor = torch.where(over, 2 * half[2], floor)
     z = p[..., 2] - fraction * (p[..., 2] - floor).clamp_min(0.0)
     return torch.cat([p[..., :2], z[..., None]], -1)
+
+
+def _draped(
+    S: torch.Tensor, g: torch.Tensor, ctx: SafetyContext
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Where the far corner of the side grasped at g (..., 3) lies if that
+    side is draped over the object (the object frame): from g straight to
+    the nearest point of the top face, across the top in that direction,
+    and down the far face by what is left of the side's length (then out
+    over the table). Returns that point (..., 3) and where the hypothesis
+    applies (...): part of the cloth S (..., M, 3) lies on the top, g is
+    outside the top's footprint, and the side is long enough to get over."""
+    size = torch.as_tensor(ctx.object_size, dtype=S.dtype)
+    hx, hy, h = size[0] / 2, size[1] / 2, size[2]
+    m = DRAPE_MARGIN
+    on_top = (
+        (S[..., 0].abs() < hx + m)
+        & (S[..., 1].abs() < hy + m)
+        & ((S[..., 2] - h).abs() < m)
+    ).any(-1)
+    outside = (g[..., 0].abs() > hx) | (g[..., 1].abs() > hy)
+    entry_xy = torch.stack(
+        [g[..., 0].clamp(-hx, hx), g[..., 1].clamp(-hy, hy)], -1
+    )
+    u = entry_xy - g[..., :2]
+    n = u.norm(dim=-1, keepdim=True)
+    u = u / n.clamp_min(1e-9)
+    # Across the top: the ray entry + t u leaves the footprint at the
+    # smaller of its two exits.
+    half = torch.stack([hx, hy])
+    moving = u.abs() > 1e-9
+    t_axis = torch.where(
+        moving,
+        (torch.sign(u) * half - entry_xy) / torch.where(moving, u, torch.ones_like(u)),
+        torch.full_like(u, float("inf")),
+    )
+    t = t_axis.min(-1).values.clamp_min(0.0)
+    to_top = torch.cat([entry_xy - g[..., :2], (h - g[..., 2])[..., None]], -1)
+    rest = (ctx.side_length or ctx.edge_length) - to_top.norm(dim=-1) - t
+    exit_xy = entry_xy + t[..., None] * u
+    down = torch.minimum(rest, h).clamp_min(0.0)
+    beyond = (rest - h).clamp_min(0.0)
+    far = torch.cat(
+        [exit_xy + beyond[..., None] * u, (h - down)[..., None]], -1
+    )
+    applies = on_top & outside & (n[..., 0] > 1e-6) & (rest > 0)
+    return far, applies
 
 
 def valid_actions(

@@ -111,3 +111,54 @@ def test_rules_are_batched():
 def test_bad_thresholds_are_rejected():
     with pytest.raises(ValueError, match="tau_c"):
         SafetyConfig(tau_c=1.2, tau_f=1.0)
+
+
+def test_a_side_draped_over_the_object_hides_its_far_corner():
+    """A towel over a plate (hang, seed 0, trial 0, step 36): f_R puts the
+    left far corner s3 by the grasped edge, the true one hangs down the
+    plate's far side. Lowering the grippers towards the plate keeps rule 2
+    on the estimate and breaks it on the true cloth; allowing for a side
+    draped over the object refuses it."""
+    import dataclasses as dc
+
+    cfg = SafetyConfig(tau_d_deg=150.0)  # hang's
+    estimate = np.array(
+        [
+            [-0.096, -0.162, 0.232],  # s1
+            [0.004, -0.099, 0.191],
+            [0.094, -0.160, 0.230],  # s2
+            [-0.001, 0.029, 0.098],
+            [-0.047, 0.053, 0.082],  # s4
+            [-0.050, -0.026, 0.197],  # on the plate's top edge
+            [-0.041, -0.155, 0.167],  # s3, as f_R sees it
+            [-0.035, -0.160, 0.170],
+        ]
+    )
+    truth = estimate.copy()
+    truth[6] = [-0.107, 0.029, 0.042]
+    truth[4] = [0.058, 0.021, 0.088]
+    A = [-0.011, 0.0154, -0.024, 0.0071, 0.0067, -0.0234]
+    plate = SafetyContext(
+        edge_length=L,
+        workspace_lower=CTX.workspace_lower,
+        workspace_upper=CTX.workspace_upper,
+        object_size=np.array([0.17, 0.01, 0.20]),
+    )
+    draped = dc.replace(plate, far_corners_may_drape=True)
+
+    def direction(S, ctx):
+        import torch
+
+        out = rule_violations(torch.as_tensor(S), torch.as_tensor(A), cfg, ctx)
+        return bool(out["direction"])
+
+    assert direction(truth, plate)
+    assert not direction(estimate, plate)
+    assert direction(estimate, draped)
+    # Carried high above the plate (nothing on its top) the side hangs
+    # below the gripper: the same move is allowed.
+    lifted = estimate + [0.0, 0.0, 0.15]
+    assert not direction(lifted, draped)
+    # The hypothesis is about hidden corners: it never passes a move the
+    # visible ones refuse.
+    assert direction(truth, dc.replace(plate, far_corners_may_drape=True))
