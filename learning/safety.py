@@ -37,8 +37,11 @@ class SafetyConfig:
     # object's top (a keypoint within DRAPE_MARGIN of the top face), judge
     # rule 2 also with each far corner hanging down the object's far side,
     # where a side draped over the object puts it out of the camera's sight
-    # (SafetyContext.far_corners_may_drape).
-    hidden_corners_drape: bool = True
+    # (SafetyContext.far_corners_may_drape). On for `hang` (scenarios.yaml);
+    # off by default: on `box_big` it also refused the moves that carry the
+    # cloth onto the box (seed 0: 8 of 10 against 10, one trial stuck with
+    # no feasible action while the far corners still trailed behind).
+    hidden_corners_drape: bool = False
 
     def __post_init__(self):
         if not 0 < self.tau_c < self.tau_f:
