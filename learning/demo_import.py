@@ -29,7 +29,9 @@ import math
 from pathlib import Path
 
 import numpy as np
+import torch
 from fabric_imitation.learning.errors import InputError
+from fabric_imitation.learning.geometry import PinholeCamera
 
 INTRINSICS_KEYS = ("width", "height", "fx", "fy", "cx", "cy")
 # Skin in YCrCb (Chai and Ngan 1999): Cr in [133, 173], Cb in [77, 127].
@@ -583,13 +585,18 @@ def ImportDemo(
             )
         X_WC = poses[len(poses) // 2]
         camera_from = f"table marker {table_marker['id']} ({len(poses)} frames)"
+    # The recording's camera at its pose, for heights above the table.
+    K = rec.K
+    camera_W = PinholeCamera(
+        width=W, height=H, fx=K[0, 0], fy=K[1, 1], cx=K[0, 2], cy=K[1, 2], X_WC=X_WC
+    )
     # Masks.
     if masks is None:
         if hsv is None:
             raise InputError("give --fabric-hsv LOW HIGH or --mask-video")
         masks = np.stack(
             [
-                FabricMask(f, *hsv, height=HeightAboveTable(d, rec.K, X_WC))
+                FabricMask(f, *hsv, height=HeightAboveTable(camera_W, d))
                 for f, d in zip(rec.rgb, rec.depth, strict=True)
             ]
         )
@@ -651,7 +658,7 @@ def ImportDemo(
     # by the fabric's own motion (its mask changing by more than
     # STILL_CHANGE per step).
     hands = [
-        HandsOnFabric(rec.rgb[k], rec.depth[k], masks[k], rec.K, X_WC) for k in chosen
+        HandsOnFabric(rec.rgb[k], rec.depth[k], masks[k], camera_W) for k in chosen
     ]
     if sum(h is not None for h in hands) >= 2:
         moved = [
@@ -788,35 +795,28 @@ HANDS_NEAR_PX = 12
 HANDS_MOVE_M = 0.005
 
 
-def HeightAboveTable(depth: np.ndarray, K: np.ndarray, X_WC: np.ndarray) -> np.ndarray:
-    """Each pixel's world height [m] (H, W) from a depth image [m] (inf
-    where there is no reading)."""
-    h, w = depth.shape
-    v, u = np.mgrid[0:h, 0:w]
-    p_C = _PointsC(u, v, np.nan_to_num(depth, nan=np.inf), K)
-    with np.errstate(invalid="ignore"):
-        return p_C @ X_WC[2, :3] + X_WC[2, 3]
+def HeightAboveTable(camera: PinholeCamera, depth: np.ndarray) -> np.ndarray:
+    """Each pixel's world height [m] (H, W) from a depth image [m] of
+    `camera`; -inf where there is no reading (never above the table)."""
+    z = camera.height_map(torch.as_tensor(depth, dtype=torch.float32)).numpy()
+    return np.where(np.isfinite(depth), z, -np.inf)
 
 
-def HandsOnFabric(rgb, depth, mask, K, X_WC) -> np.ndarray | None:
+def HandsOnFabric(rgb, depth, mask, camera: PinholeCamera) -> np.ndarray | None:
     """Mean world position [m] of the operator's hands in a frame (skin-
     coloured pixels above the table), or None when there are none or none
     of them within HANDS_NEAR_PX of the fabric."""
     import cv2
 
-    h, w = depth.shape
-    v, u = np.mgrid[0:h, 0:w]
-    d = np.nan_to_num(depth, nan=np.inf)
-    p_C = _PointsC(u, v, d, K)
-    z_W = p_C @ X_WC[2, :3] + X_WC[2, 3]
-    hands = SkinMask(rgb) & np.isfinite(z_W) & (z_W > HANDS_MIN_HEIGHT_M)
+    hands = SkinMask(rgb) & (HeightAboveTable(camera, depth) > HANDS_MIN_HEIGHT_M)
     hands &= mask == 0
     if hands.sum() < 20:
         return None
     kernel = np.ones((2 * HANDS_NEAR_PX + 1,) * 2, np.uint8)
     if not (hands & (cv2.dilate(mask.astype(np.uint8), kernel) > 0)).any():
         return None
-    return (p_C[hands] @ X_WC[:3, :3].T + X_WC[:3, 3]).mean(0)
+    rays = camera.rays_W.numpy()[hands]
+    return (camera.p_WC.numpy() + depth[hands][:, None] * rays).mean(0)
 
 
 # A subsampled frame counts as still when its fabric mask changed by at most

@@ -135,9 +135,12 @@ def rule_violations(
                 | bad_direction(a_r, s2 - s4d)
             )
     if ctx.far_corners_may_drape and ctx.object_size is not None:
+        on_top = _cloth_on_top(S, ctx)
         for a, g in ((a_l, s1), (a_r, s2)):
-            far, applies = _draped(S, g, ctx)
-            out["direction"] = out["direction"] | (applies & bad_direction(a, g - far))
+            far, applies = _draped(g, ctx)
+            out["direction"] = out["direction"] | (
+                on_top & applies & bad_direction(a, g - far)
+            )
     lo = torch.as_tensor(ctx.workspace_lower, dtype=S.dtype)
     hi = torch.as_tensor(ctx.workspace_upper, dtype=S.dtype)
     grippers = torch.stack([s1n, s2n], -2)
@@ -193,28 +196,31 @@ def _dropped(p: torch.Tensor, fraction: float, ctx: SafetyContext) -> torch.Tens
     return torch.cat([p[..., :2], z[..., None]], -1)
 
 
-def _draped(
-    S: torch.Tensor, g: torch.Tensor, ctx: SafetyContext
-) -> tuple[torch.Tensor, torch.Tensor]:
+def _cloth_on_top(S: torch.Tensor, ctx: SafetyContext) -> torch.Tensor:
+    """(...) True where a keypoint of S (..., M, 3) lies on the object's top
+    (within DRAPE_MARGIN of it; the object frame)."""
+    size = torch.as_tensor(ctx.object_size, dtype=S.dtype)
+    m = DRAPE_MARGIN
+    return (
+        (S[..., 0].abs() < size[0] / 2 + m)
+        & (S[..., 1].abs() < size[1] / 2 + m)
+        & ((S[..., 2] - size[2]).abs() < m)
+    ).any(-1)
+
+
+def _draped(g: torch.Tensor, ctx: SafetyContext) -> tuple[torch.Tensor, torch.Tensor]:
     """Where the far corner of the side grasped at g (..., 3) lies if that
     side is draped over the object (the object frame): from g straight to
     the nearest point of the top face, across the top in that direction,
     and down the far face by what is left of the side's length (then out
     over the table). Returns that point (..., 3) and where the hypothesis
-    applies (...): part of the cloth S (..., M, 3) lies on the top, g is
-    outside the top's footprint, and the side is long enough to get over."""
-    size = torch.as_tensor(ctx.object_size, dtype=S.dtype)
+    can hold (...): g is outside the top's footprint and the side is long
+    enough to get over (the caller also needs cloth on the top,
+    `_cloth_on_top`)."""
+    size = torch.as_tensor(ctx.object_size, dtype=g.dtype)
     hx, hy, h = size[0] / 2, size[1] / 2, size[2]
-    m = DRAPE_MARGIN
-    on_top = (
-        (S[..., 0].abs() < hx + m)
-        & (S[..., 1].abs() < hy + m)
-        & ((S[..., 2] - h).abs() < m)
-    ).any(-1)
     outside = (g[..., 0].abs() > hx) | (g[..., 1].abs() > hy)
-    entry_xy = torch.stack(
-        [g[..., 0].clamp(-hx, hx), g[..., 1].clamp(-hy, hy)], -1
-    )
+    entry_xy = torch.stack([g[..., 0].clamp(-hx, hx), g[..., 1].clamp(-hy, hy)], -1)
     u = entry_xy - g[..., :2]
     n = u.norm(dim=-1, keepdim=True)
     u = u / n.clamp_min(1e-9)
@@ -233,10 +239,8 @@ def _draped(
     exit_xy = entry_xy + t[..., None] * u
     down = torch.minimum(rest, h).clamp_min(0.0)
     beyond = (rest - h).clamp_min(0.0)
-    far = torch.cat(
-        [exit_xy + beyond[..., None] * u, (h - down)[..., None]], -1
-    )
-    applies = on_top & outside & (n[..., 0] > 1e-6) & (rest > 0)
+    far = torch.cat([exit_xy + beyond[..., None] * u, (h - down)[..., None]], -1)
+    applies = outside & (n[..., 0] > 1e-6) & (rest > 0)
     return far, applies
 
 
