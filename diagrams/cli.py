@@ -504,6 +504,12 @@ def _add_evaluate(p):
     )
     p.add_argument("--seed", type=int, default=0, help="seed of the trial poses")
     p.add_argument(
+        "--sampling-seed",
+        type=int,
+        default=0,
+        help="seed of the controllers' sampling (same poses, another run; default 0)",
+    )
+    p.add_argument(
         "--demo", type=Path, default=None, help="demo directory (default: shipped)"
     )
     p.add_argument(
@@ -534,6 +540,7 @@ def _evaluate(args) -> dict:
         scenario_text=args.scenario_text,
         protocol=args.protocol,
         executor=args.executor,
+        sampling_seed=args.sampling_seed,
     )
 
 
@@ -673,6 +680,9 @@ def _CheckArgs(args) -> None:
         value = getattr(args, name, None)
         if value is not None and value < 1:
             raise InputError(f"--{name} must be at least 1, got {value}")
+    sampling_seed = getattr(args, "sampling_seed", None)
+    if sampling_seed is not None and sampling_seed < 0:
+        raise InputError(f"--sampling-seed must be >= 0, got {sampling_seed}")
     protocol = getattr(args, "protocol", None)
     if protocol is not None:
         from fabric_imitation.diagrams.evaluate import PROTOCOLS

@@ -36,6 +36,8 @@ METHODS = {
     "scripted": (None, {}),  # the scripted demonstration at the trial's pose
 }
 BASELINE_METHODS = ("zero", "cfm", "tcn")
+# Trial i of sampling seed K seeds its controller with i + this x K.
+SAMPLING_SEED_STRIDE = 1000
 
 
 # Protocol -> (largest move of the object [m], largest turn [deg]) away
@@ -183,7 +185,7 @@ def _run_trial(job: dict) -> dict:
                 mpc_config=dc.replace(scenario.mpc, **changes),
                 controller=controller,
                 progress=False,
-                seed=job["trial"],
+                seed=job["trial"] + SAMPLING_SEED_STRIDE * job.get("sampling_seed", 0),
             )
         except Exception as e:  # noqa: BLE001 (one failed trial; the sweep goes on)
             summary = {
@@ -279,11 +281,20 @@ def Evaluate(
     progress: bool = True,
     protocol: str = "transformation",
     executor: str = "local",
+    sampling_seed: int = 0,
 ) -> dict:
     """Runs `trials` trials per scenario and method (resumable via `out`,
     a JSON-lines file of finished trials); writes `out`.summary.json and a
     bar plot `out`.png. `scenario_text` (YAML) overrides every scenario, e.g.
-    "cloth: {engine: fem}"."""
+    "cloth: {engine: fem}".
+
+    `seed` draws the object poses; `sampling_seed` the controllers' random
+    sampling (trial i samples with seed i + SAMPLING_SEED_STRIDE x
+    sampling_seed): the same poses under another sampling seed are an
+    equally valid run, so their spread is the run-to-run spread of a
+    count."""
+    if sampling_seed < 0:
+        raise InputError(f"--sampling-seed must be >= 0, got {sampling_seed}")
     if executor not in ("local", "ray"):
         raise InputError(f"unknown executor {executor!r}; use local or ray")
     unknown = [m for m in methods if m not in METHODS]
@@ -297,7 +308,10 @@ def Evaluate(
                 row = json.loads(line)
             except json.JSONDecodeError:
                 continue  # a line cut by a kill: the trial is run again
-            if row.get("protocol", "transformation") == protocol:
+            if (
+                row.get("protocol", "transformation") == protocol
+                and row.get("sampling_seed", 0) == sampling_seed
+            ):
                 done[(row["scenario"], row["method"], row["trial"])] = row
     pose_lists = {
         name: ProtocolPoses(
@@ -320,6 +334,7 @@ def Evaluate(
                             "priors": str(priors) if priors else None,
                             "scenario_text": scenario_text,
                             "protocol": protocol,
+                            "sampling_seed": sampling_seed,
                             "baselines": any(m in BASELINE_METHODS for m in methods),
                         }
                     )
@@ -389,6 +404,7 @@ def Evaluate(
         },
         "trials_per_cell": trials,
         "seed": seed,
+        "sampling_seed": sampling_seed,
         "poses": pose_lists,
         "prepare_seconds": prepare_seconds,
         "results": table,
@@ -432,7 +448,8 @@ def ResultsMarkdown(summary: dict) -> str:
         f"Protocol `{summary['protocol']}` (object moved <= "
         f"{summary['protocol_band']['max_shift_m'] * 100:g} cm, turned <= "
         f"{summary['protocol_band']['max_turn_deg']:g} deg), pose seed "
-        f"{summary['seed']}, {summary['trials_per_cell']} trials per cell.",
+        f"{summary['seed']}, sampling seed {summary.get('sampling_seed', 0)}, "
+        f"{summary['trials_per_cell']} trials per cell.",
         "",
         "| task | method | success | IoU | Chamfer [m] | true rule breaks "
         "(trials with any) | steps (mean) |",

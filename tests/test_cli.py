@@ -20,6 +20,10 @@ from fabric_imitation.diagrams.cli import main
         (["evaluate", "--trials", "0", "--out", "x.jsonl"], "--trials must be at"),
         (["evaluate", "--workers", "0", "--out", "x.jsonl"], "--workers must be at"),
         (
+            ["evaluate", "--sampling-seed", "-1", "--out", "x.jsonl"],
+            "--sampling-seed must be >= 0",
+        ),
+        (
             ["imitate", "--record", "/no/such/dir/run.html"],
             "--record /no/such/dir/run.html: directory /no/such/dir does not exist",
         ),

@@ -222,3 +222,41 @@ def test_occlusion_hides_the_asked_fraction_of_the_fabric():
             lost = 1 - hidden.sum() / mask.sum()
             assert fraction - 0.01 <= lost < fraction + 0.08, (kind, fraction, lost)
             assert not np.any(hidden & (mask == 0))
+
+
+def test_a_sampling_seed_is_another_run_of_the_same_poses(tmp_path, monkeypatch):
+    """--sampling-seed K reseeds every trial's controller (trial i: i + 1000
+    K) at the same poses; rows of one sampling seed are never resumed as
+    another's."""
+    import json
+
+    import fabric_imitation.diagrams.evaluate as evaluate
+    import fabric_imitation.diagrams.imitation as imitation
+
+    seeds = []
+
+    def imitate(**kwargs):
+        seeds.append(kwargs["seed"])
+        row = _row(0, True, 0, 20, 0.9)
+        return {k: v for k, v in row.items() if k not in ("trial", "trial_seconds")}
+
+    monkeypatch.setattr(imitation, "Imitate", imitate)
+    monkeypatch.setattr(evaluate, "_prepare", lambda job: object())
+    out = tmp_path / "eval.jsonl"
+    common = dict(
+        scenario_names=["box"], methods=["ours"], trials=2, out=out, progress=False
+    )
+    first = evaluate.Evaluate(**common)
+    again = evaluate.Evaluate(**common, sampling_seed=3)
+    assert seeds == [0, 1, 3000, 3001]
+    assert first["poses"] == again["poses"] and again["sampling_seed"] == 3
+    evaluate.Evaluate(**common, sampling_seed=3)  # resumed: nothing to run
+    assert len(seeds) == 4
+    rows = [json.loads(line) for line in out.read_text().splitlines()]
+    assert sorted((r["sampling_seed"], r["trial"]) for r in rows) == [
+        (0, 0),
+        (0, 1),
+        (3, 0),
+        (3, 1),
+    ]
+    assert "sampling seed 3" in (tmp_path / "eval.jsonl.md").read_text()
