@@ -42,6 +42,12 @@ class SafetyConfig:
     # cloth onto the box (seed 0: 8 of 10 against 10, one trial stuck with
     # no feasible action while the far corners still trailed behind).
     hidden_corners_drape: bool = False
+    # The controller's view only: rule 2 judged on a hypothesised hidden far
+    # corner (the two switches above) uses tau_d_deg less this [deg], since
+    # where a hidden corner lies is known only roughly. `hang`, 10 at
+    # seeds 0 / 1 / 2: true rule breaks 3 / 4 / 3 -> 1 / 3 / 1, successes
+    # 9 / 9 / 10 -> 8 / 8 / 9 (README), hence off by default.
+    hidden_corner_margin_deg: float = 0.0
 
     def __post_init__(self):
         if not 0 < self.tau_c < self.tau_f:
@@ -52,6 +58,11 @@ class SafetyConfig:
         if not 0 < self.tau_d_deg <= 180:
             raise ValueError(
                 f"safety.tau_d_deg must be in (0, 180], got {self.tau_d_deg}"
+            )
+        if not 0 <= self.hidden_corner_margin_deg < self.tau_d_deg:
+            raise ValueError(
+                "safety.hidden_corner_margin_deg must be in [0, tau_d_deg), got "
+                f"{self.hidden_corner_margin_deg}"
             )
         if self.max_step <= 0:
             raise ValueError(f"safety.max_step must be positive, got {self.max_step}")
@@ -118,11 +129,15 @@ def rule_violations(
     L = ctx.edge_length
     out["distance"] = (d <= config.tau_c * L) | (d >= config.tau_f * L)
     cos_max = math.cos(math.radians(config.tau_d_deg))
+    # A hypothesised hidden corner is judged with the margin.
+    cos_hidden = math.cos(
+        math.radians(config.tau_d_deg - config.hidden_corner_margin_deg)
+    )
 
-    def bad_direction(a, edge):
+    def bad_direction(a, edge, cos_limit=cos_max):
         na, ne = a.norm(dim=-1), edge.norm(dim=-1)
         cos = (a * edge).sum(-1) / (na * ne).clamp_min(1e-12)
-        return (na > config.min_move) & (cos <= cos_max)
+        return (na > config.min_move) & (cos <= cos_limit)
 
     out["direction"] = bad_direction(a_l, s1 - s3) | bad_direction(a_r, s2 - s4)
     if ctx.far_corners_may_hang:
@@ -131,15 +146,15 @@ def rule_violations(
             s4d = _dropped(s4, fraction, ctx)
             out["direction"] = (
                 out["direction"]
-                | bad_direction(a_l, s1 - s3d)
-                | bad_direction(a_r, s2 - s4d)
+                | bad_direction(a_l, s1 - s3d, cos_hidden)
+                | bad_direction(a_r, s2 - s4d, cos_hidden)
             )
     if ctx.far_corners_may_drape and ctx.object_size is not None:
         on_top = _cloth_on_top(S, ctx)
         for a, g in ((a_l, s1), (a_r, s2)):
             far, applies = _draped(g, ctx)
             out["direction"] = out["direction"] | (
-                on_top & applies & bad_direction(a, g - far)
+                on_top & applies & bad_direction(a, g - far, cos_hidden)
             )
     lo = torch.as_tensor(ctx.workspace_lower, dtype=S.dtype)
     hi = torch.as_tensor(ctx.workspace_upper, dtype=S.dtype)

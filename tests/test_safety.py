@@ -162,3 +162,51 @@ def test_a_side_draped_over_the_object_hides_its_far_corner():
     # The hypothesis is about hidden corners: it never passes a move the
     # visible ones refuse.
     assert direction(truth, dc.replace(plate, far_corners_may_drape=True))
+
+
+def test_a_hidden_corner_is_judged_with_a_margin():
+    """A towel over a plate (hang, seed 0, trial 6, step 38): the right
+    gripper moves 2.8 cm towards the plate while its far corner s4 hangs
+    behind it (158 degrees on the true cloth, over hang's 150). The
+    estimated s4 lies on the plate's top edge, and the corner where a side
+    draped over the plate would put it is 144 degrees off the move: only
+    with the hidden-corner margin of 10 degrees is the move refused. The
+    margin never touches a corner that is judged as seen."""
+    import dataclasses as dc
+
+    import torch
+
+    estimate = np.array(
+        [
+            [-0.089, -0.133, 0.124],  # s1
+            [-0.040, -0.082, 0.129],
+            [0.120, -0.106, 0.136],  # s2
+            [0.077, -0.060, 0.127],
+            [0.060, -0.000, 0.208],  # s4, as f_R sees it
+            [-0.001, 0.012, 0.165],
+            [-0.094, -0.042, 0.129],  # s3
+            [-0.117, -0.021, 0.167],
+        ]
+    )
+    truth = estimate.copy()
+    truth[4] = [0.061, 0.014, 0.095]
+    truth[6] = [-0.118, 0.032, 0.053]
+    A = torch.tensor([-0.0266, 0.0238, -0.013, -0.0026, 0.0277, -0.0036])
+    plate = SafetyContext(
+        edge_length=L,
+        workspace_lower=CTX.workspace_lower,
+        workspace_upper=CTX.workspace_upper,
+        object_size=np.array([0.17, 0.01, 0.20]),
+    )
+    hidden = dc.replace(plate, far_corners_may_hang=True, far_corners_may_drape=True)
+
+    def direction(S, ctx, margin):
+        cfg = SafetyConfig(tau_d_deg=150.0, hidden_corner_margin_deg=margin)
+        return bool(rule_violations(torch.as_tensor(S), A, cfg, ctx)["direction"])
+
+    assert direction(truth, plate, 0.0)
+    assert not direction(estimate, plate, 10.0)  # as seen: no margin
+    assert not direction(estimate, hidden, 0.0)
+    assert direction(estimate, hidden, 10.0)
+    with pytest.raises(ValueError, match="hidden_corner_margin_deg"):
+        SafetyConfig(tau_d_deg=150.0, hidden_corner_margin_deg=150.0)
