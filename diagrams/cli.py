@@ -680,9 +680,6 @@ def _CheckArgs(args) -> None:
         value = getattr(args, name, None)
         if value is not None and value < 1:
             raise InputError(f"--{name} must be at least 1, got {value}")
-    sampling_seed = getattr(args, "sampling_seed", None)
-    if sampling_seed is not None and sampling_seed < 0:
-        raise InputError(f"--sampling-seed must be >= 0, got {sampling_seed}")
     protocol = getattr(args, "protocol", None)
     if protocol is not None:
         from fabric_imitation.diagrams.evaluate import PROTOCOLS
