@@ -63,7 +63,9 @@ def RecordDemo(
     `raw_fps` frames per second, from the start to the end of the settle.
 
     Re-running with the same request on a finished directory records nothing
-    and returns the stored summary; a directory holding another demo is an
+    and returns the stored summary; a directory holding another demo, or the
+    same demo recorded in another version of the scenario (its
+    scenario.yaml differs: another cloth engine setting, say), is an
     InputError.
     """
     out = Path(out)
@@ -80,6 +82,13 @@ def RecordDemo(
                 f"output directory {out} already holds a different demo "
                 f"({existing.get('scenario_name')} at object pose "
                 f"{existing.get('object_pose')})"
+            )
+        stored = out / "scenario.yaml"
+        if not stored.is_file() or stored.read_text() != DumpScenario(scenario):
+            raise InputError(
+                f"output directory {out} holds this demo recorded in another "
+                f"version of scenario {scenario_name} (its scenario.yaml "
+                "differs); remove the directory to record it again"
             )
         return {
             **{k: existing[k] for k in existing if k not in ("files",)},

@@ -137,6 +137,13 @@ def test_demo_record_writes_an_observation_only_demo(tmp_path):
     )
     with pytest.raises(InputError, match="already holds a different demo"):
         RecordDemo(scenario=moved, scenario_name="box", out=out, progress=False)
+    # So is the same demo in another version of the scenario (here another
+    # cloth setting): it would be stale, not a finished run to resume.
+    changed = LoadScenario(
+        scenario_name="box", scenario_text="cloth: {vbd: {iterations: 3}}"
+    )
+    with pytest.raises(InputError, match="another version of scenario box"):
+        RecordDemo(scenario=changed, scenario_name="box", out=out, progress=False)
     # A truncated file is detected.
     obs = out / "observations.npz"
     obs.write_bytes(obs.read_bytes()[:1000])
