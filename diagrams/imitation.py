@@ -283,6 +283,7 @@ def MakeImitationDiagram(
             height=cam.height,
             period=dt,
             offset=start,
+            misread_grasp_error=scenario.safety.misread_grasp_error,
         ),
     )
     reward = builder.AddNamedSystem(
@@ -381,6 +382,11 @@ def MakeImitationDiagram(
     for system in (reward, controller):
         builder.Connect(
             estimator.GetOutputPort("keypoints"), system.GetInputPort("keypoints")
+        )
+    if controller.HasInputPort("remembered_far_corners"):
+        builder.Connect(
+            estimator.GetOutputPort("remembered_far_corners"),
+            controller.GetInputPort("remembered_far_corners"),
         )
     builder.Connect(controller.GetOutputPort("action"), targets.GetInputPort("action"))
     builder.Connect(

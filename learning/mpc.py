@@ -283,6 +283,7 @@ class Mpc:
         seed: int = 0,
         previous_progress: int | None = None,
         frame_pose=None,
+        far_corner_alternatives=None,
     ) -> MpcResult:
         """One control step from state S (M, 3).
 
@@ -299,6 +300,12 @@ class Mpc:
         if frame_pose is not None:
             # The rules' world-frame parts (workspace box) follow the object.
             self.ctx = dc.replace(self.ctx, frame_pose=np.asarray(frame_pose, float))
+        self.ctx = dc.replace(
+            self.ctx,
+            far_corner_alternatives=None
+            if far_corner_alternatives is None
+            else torch.as_tensor(np.asarray(far_corner_alternatives), dtype=torch.float32),
+        )
         S = torch.as_tensor(S, dtype=torch.float32)
         J0 = self.current_progress(S, step, previous_progress)
         window = self._window(J0)

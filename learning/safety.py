@@ -48,6 +48,20 @@ class SafetyConfig:
     # seeds 0 / 1 / 2: true rule breaks 3 / 4 / 3 -> 1 / 3 / 1, successes
     # 9 / 9 / 10 -> 8 / 8 / 9 (README), hence off by default.
     hidden_corner_margin_deg: float = 0.0
+    # The controller's view only: the robot measures where it holds s1 and
+    # s2, so f_R's own estimate of them says how well it read a frame. Where
+    # the two lie more than this [m] (summed) from the grippers, f_R has
+    # misread the frame (on box_big it names the far corners of the 40 x 30
+    # cm cloth a quarter turn off, or draws a polygon across the box), and
+    # rule 2 is also judged against the far corners of the last frame it
+    # read within this (KeypointEstimator; SafetyContext.
+    # far_corner_alternatives). Off (inf) for hang (scenarios.yaml): a towel
+    # hanging under the grippers puts f_R's grasped corners 4-7 cm off in
+    # frames it reads right, and its far corners move as it slides. 10
+    # trials at seeds 0 / 1 / 2, true rule breaks without -> with: box_big
+    # 10 / 5 / 6 -> 4 / 3 / 3 (successes 10 / 9 / 9 -> 10 / 9 / 8), box
+    # 0 / 1 / 0 -> 0 / 0 / 0 (10 / 10 / 10 both; README).
+    misread_grasp_error: float = 0.10
 
     def __post_init__(self):
         if not 0 < self.tau_c < self.tau_f:
@@ -63,6 +77,11 @@ class SafetyConfig:
             raise ValueError(
                 "safety.hidden_corner_margin_deg must be in [0, tau_d_deg), got "
                 f"{self.hidden_corner_margin_deg}"
+            )
+        if not self.misread_grasp_error > 0:
+            raise ValueError(
+                "safety.misread_grasp_error must be positive (inf: off), got "
+                f"{self.misread_grasp_error}"
             )
         if self.max_step <= 0:
             raise ValueError(f"safety.max_step must be positive, got {self.max_step}")
@@ -94,6 +113,10 @@ class SafetyContext:
     far_corners_may_drape: bool = False
     # Rest length [m] of the sides s1-s3 and s2-s4 (None: edge_length).
     side_length: float | None = None
+    # Other places (2, 3) where s3 and s4 may be: rule 2 is also judged
+    # against them (the estimator's last trusted far corners, when f_R has
+    # misread the frame), or None.
+    far_corner_alternatives: torch.Tensor | None = None
 
 
 # A keypoint this close [m] to the object's top face (within its footprint
@@ -149,6 +172,13 @@ def rule_violations(
                 | bad_direction(a_l, s1 - s3d, cos_hidden)
                 | bad_direction(a_r, s2 - s4d, cos_hidden)
             )
+    if ctx.far_corner_alternatives is not None:
+        alt = torch.as_tensor(ctx.far_corner_alternatives, dtype=S.dtype)
+        out["direction"] = (
+            out["direction"]
+            | bad_direction(a_l, s1 - alt[0], cos_hidden)
+            | bad_direction(a_r, s2 - alt[1], cos_hidden)
+        )
     if ctx.far_corners_may_drape and ctx.object_size is not None:
         on_top = _cloth_on_top(S, ctx)
         for a, g in ((a_l, s1), (a_r, s2)):

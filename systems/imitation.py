@@ -77,10 +77,18 @@ class KeypointEstimator(LeafSystem):
     robot's own measurement) instead of from the image, where a corner can
     hide under the cloth.
 
+    The same measurement says how well f_R read the frame: where its own
+    grasped corners lie more than ``misread_grasp_error`` metres (summed
+    over both) from the grippers, the frame counts as misread, and
+    ``remembered_far_corners`` gives s3 and s4 of the last frame read
+    within that (NaN while the frame is read right, or before any was);
+    the keypoints themselves stay f_R's.
+
     Input ports: ``mask`` (ImageGrey8U), ``depth`` (ImageDepth32F),
     ``object_pose`` (RigidTransform X_WO), ``grippers`` (6, optional: left
     and right gripper positions in world).
-    Output ports: ``keypoints`` (3M, object frame; from state).
+    Output ports: ``keypoints`` (3M, object frame; from state),
+    ``remembered_far_corners`` (6, object frame: s3 then s4).
 
     Args:
         priors: anything with ``keypoints(mask, depth) -> (M, 3)`` world points.
@@ -95,27 +103,61 @@ class KeypointEstimator(LeafSystem):
         height: int,
         period: float,
         offset: float = 0.0,
+        misread_grasp_error: float = np.inf,
     ):
         super().__init__()
         self._priors = priors
         self._mask, self._depth, self._pose = _DeclareCameraInputs(self, width, height)
         self._grippers = self.DeclareVectorInputPort("grippers", 6)
-        self._corners = [corner_indices(num_keypoints)[k] for k in ("s1", "s2")]
+        idx = corner_indices(num_keypoints)
+        self._corners = [idx[k] for k in ("s1", "s2")]
+        self._far = [idx[k] for k in ("s3", "s4")]
+        self._misread_grasp_error = misread_grasp_error
         self._state = self.DeclareDiscreteState(3 * num_keypoints)
+        # The last estimate read right, and [this frame read right, one was].
+        self._trusted = self.DeclareDiscreteState(3 * num_keypoints)
+        self._trust = self.DeclareDiscreteState(2)
         self.DeclarePeriodicDiscreteUpdateEvent(period, offset, self._update)
         self.DeclareForcedDiscreteUpdateEvent(self._update)
         self.DeclareStateOutputPort("keypoints", self._state)
+        self.DeclareVectorOutputPort(
+            "remembered_far_corners",
+            6,
+            self._calc_remembered,
+            {
+                self.discrete_state_ticket(self._trusted),
+                self.discrete_state_ticket(self._trust),
+            },
+        )
+
+    def _calc_remembered(self, context, output):
+        trusted, seen = context.get_discrete_state(self._trust).value()
+        if trusted > 0.5 or seen < 0.5:
+            output.SetFromVector(np.full(6, np.nan))
+            return
+        p = context.get_discrete_state(self._trusted).value().reshape(-1, 3)
+        output.SetFromVector(p[self._far].ravel())
 
     def _update(self, context, discrete_state) -> EventStatus:
         mask = self._mask.Eval(context).data[:, :, 0]
         depth = self._depth.Eval(context).data[:, :, 0]
         p_W = np.array(self._priors.keypoints(mask, depth))
+        trusted = True
         if self._grippers.HasValue(context):
-            p_W[self._corners] = self._grippers.Eval(context).reshape(2, 3)
+            grippers = self._grippers.Eval(context).reshape(2, 3)
+            error = float(np.linalg.norm(p_W[self._corners] - grippers, axis=1).sum())
+            trusted = error <= self._misread_grasp_error
+            p_W[self._corners] = grippers
         p_O = world_to_object(
             p_W, PlanarPose.FromRigidTransform(self._pose.Eval(context))
         )
         discrete_state.get_mutable_vector(self._state).SetFromVector(p_O.ravel())
+        seen = context.get_discrete_state(self._trust).value()[1] > 0.5
+        if trusted:
+            discrete_state.get_mutable_vector(self._trusted).SetFromVector(p_O.ravel())
+        discrete_state.get_mutable_vector(self._trust).SetFromVector(
+            [float(trusted), float(seen or trusted)]
+        )
         return EventStatus.Succeeded()
 
 
@@ -319,25 +361,34 @@ class StepController(LeafSystem):
 
 class MpcController(StepController):
     """Sampling MPC following the demo (learning/mpc.py), once per control
-    step (see StepController for ports). Ends the episode when the
-    termination classifier fires, when no feasible action exists, or at the
-    step cap. The rules use the object pose of the step."""
+    step (see StepController for ports; also ``remembered_far_corners``,
+    optional: KeypointEstimator's, where rule 2 is judged as well). Ends the
+    episode when the termination classifier fires, when no feasible action
+    exists, or at the step cap. The rules use the object pose of the
+    step."""
 
     def __init__(self, *, mpc, seed: int = 0, **kwargs):
         super().__init__(**kwargs)
         self._mpc = mpc
         self._seed = seed
+        self._remembered = self.DeclareVectorInputPort("remembered_far_corners", 6)
 
     def Finished(self, S, steps) -> int | None:
         return TERMINATED_CLASSIFIER if self._mpc.finished(S, steps) else None
 
     def Decide(self, context, S, pose, steps, progress):
+        far = None
+        if self._remembered.HasValue(context):
+            v = self._remembered.Eval(context)
+            if np.all(np.isfinite(v)):
+                far = v.reshape(2, 3)
         result = self._mpc.solve(
             S,
             step=steps,
             seed=self._seed,
             previous_progress=progress,
             frame_pose=pose,
+            far_corner_alternatives=far,
         )
         if not result.feasible:
             _LOG.warning(

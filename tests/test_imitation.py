@@ -370,6 +370,47 @@ def test_keypoint_estimator_system_outputs_object_frame_keypoints():
     assert priors.seen == [((24, 32), (24, 32))]
 
 
+def test_keypoint_estimator_remembers_far_corners_of_frames_read_right():
+    """Where f_R's own grasped corners lie far from the grippers (a misread
+    frame), `remembered_far_corners` gives s3, s4 of the last frame whose
+    grasped corners matched; NaN while the frame matches. The keypoints
+    stay f_R's, with the measured grasped corners."""
+    good = square(0.1, 0.2, 0.3, z=0.01)
+    misread = np.roll(good, 2, axis=0)  # corners named a quarter turn off
+    priors = FixedPriors(good)
+    dut = KeypointEstimator(
+        priors=priors,
+        num_keypoints=8,
+        width=32,
+        height=24,
+        period=0.2,
+        misread_grasp_error=0.06,
+    )
+    context = dut.CreateDefaultContext()
+    dut.GetInputPort("mask").FixValue(context, ImageGrey8U(32, 24))
+    dut.GetInputPort("depth").FixValue(context, ImageDepth32F(32, 24))
+    dut.GetInputPort("object_pose").FixValue(context, RigidTransform())
+    dut.GetInputPort("grippers").FixValue(context, good[[0, 2]].ravel())
+
+    def update():
+        state = dut.CreateDefaultContext().get_discrete_state()
+        dut.CalcForcedDiscreteVariableUpdate(context, state)
+        context.SetDiscreteState(state)
+        return dut.GetOutputPort("remembered_far_corners").Eval(context)
+
+    priors.points = misread
+    assert np.isnan(update()).all()  # no frame read right yet
+    priors.points = good
+    assert np.isnan(update()).all()
+    priors.points = misread
+    np.testing.assert_allclose(update(), good[[6, 4]].ravel(), atol=1e-6)
+    keypoints = dut.GetOutputPort("keypoints").Eval(context).reshape(8, 3)
+    np.testing.assert_allclose(keypoints[[0, 2]], good[[0, 2]], atol=1e-6)
+    np.testing.assert_allclose(keypoints[4], misread[4], atol=1e-6)
+    priors.points = good
+    assert np.isnan(update()).all()
+
+
 def test_each_ablation_changes_only_what_it_names():
     """No MPC applies the prior's first action; No Prior samples around zero
     instead of around the prior; No Cost takes an action that breaks a rule
