@@ -59,8 +59,9 @@ class SafetyConfig:
     # hanging under the grippers puts f_R's grasped corners 4-7 cm off in
     # frames it reads right, and its far corners move as it slides. 10
     # trials at seeds 0 / 1 / 2, true rule breaks without -> with: box_big
-    # 10 / 5 / 6 -> 4 / 3 / 3 (successes 10 / 9 / 9 -> 10 / 9 / 8), box
-    # 0 / 1 / 0 -> 0 / 0 / 0 (10 / 10 / 10 both; README).
+    # 10 / 5 / 6 -> 4 / 3 / 3 and 8 / 2 / 3 in a second run (successes
+    # 10 / 9 / 9 -> 10 / 9 / 8), box 0 / 1 / 0 -> 0 / 0 / 0 (10 / 10 / 10
+    # both; README).
     misread_grasp_error: float = 0.10
 
     def __post_init__(self):
