@@ -55,9 +55,9 @@ class SafetyConfig:
     # cm cloth a quarter turn off, or draws a polygon across the box), and
     # rule 2 is also judged against the far corners of the last frame it
     # read within this (KeypointEstimator; SafetyContext.
-    # far_corner_alternatives). Off (inf) for hang (scenarios.yaml): a towel
-    # hanging under the grippers puts f_R's grasped corners 4-7 cm off in
-    # frames it reads right, and its far corners move as it slides. 10
+    # far_corner_alternatives). Off (inf) for hang (scenarios.yaml): for a
+    # towel hanging under the grippers f_R's grasped corners are 3-7 cm off
+    # in most frames, and its far corners move as it slides. 10
     # trials at seeds 0 / 1 / 2, true rule breaks without -> with: box_big
     # 10 / 5 / 6 -> 4 / 3 / 3 and 8 / 2 / 3 in a second run (successes
     # 10 / 9 / 9 -> 10 / 9 / 8), box 0 / 1 / 0 -> 0 / 0 / 0 (10 / 10 / 10
