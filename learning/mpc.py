@@ -293,18 +293,20 @@ class Mpc:
         height, and free jumps of J made the controller hunt back and forth.
         `frame_pose` ([x, y, yaw]) is the object's pose now, where the
         workspace rule's world box is checked (default: the one given at
-        construction).
+        construction). `far_corner_alternatives` ((2, 3) or None): other
+        places of s3, s4 that rule 2 is also judged against this step
+        (SafetyContext).
         """
         cfg = self.config
         t0 = time.perf_counter()
-        if frame_pose is not None:
-            # The rules' world-frame parts (workspace box) follow the object.
-            self.ctx = dc.replace(self.ctx, frame_pose=np.asarray(frame_pose, float))
+        # The rules' world-frame parts (workspace box) follow the object; the
+        # far-corner alternatives hold for this step only.
         self.ctx = dc.replace(
             self.ctx,
-            far_corner_alternatives=None
-            if far_corner_alternatives is None
-            else torch.as_tensor(np.asarray(far_corner_alternatives), dtype=torch.float32),
+            frame_pose=self.ctx.frame_pose
+            if frame_pose is None
+            else np.asarray(frame_pose, float),
+            far_corner_alternatives=far_corner_alternatives,
         )
         S = torch.as_tensor(S, dtype=torch.float32)
         J0 = self.current_progress(S, step, previous_progress)

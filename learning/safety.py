@@ -117,7 +117,7 @@ class SafetyContext:
     # Other places (2, 3) where s3 and s4 may be: rule 2 is also judged
     # against them (the estimator's last trusted far corners, when f_R has
     # misread the frame), or None.
-    far_corner_alternatives: torch.Tensor | None = None
+    far_corner_alternatives: np.ndarray | None = None
 
 
 # A keypoint this close [m] to the object's top face (within its footprint

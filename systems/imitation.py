@@ -114,29 +114,14 @@ class KeypointEstimator(LeafSystem):
         self._far = [idx[k] for k in ("s3", "s4")]
         self._misread_grasp_error = misread_grasp_error
         self._state = self.DeclareDiscreteState(3 * num_keypoints)
-        # The last estimate read right, and [this frame read right, one was].
-        self._trusted = self.DeclareDiscreteState(3 * num_keypoints)
-        self._trust = self.DeclareDiscreteState(2)
+        # s3, s4 of the last frame read right (NaN before one), and the
+        # output: those while this frame is misread, else NaN.
+        self._last_good_far = self.DeclareDiscreteState(BasicVector(np.full(6, np.nan)))
+        self._remembered = self.DeclareDiscreteState(BasicVector(np.full(6, np.nan)))
         self.DeclarePeriodicDiscreteUpdateEvent(period, offset, self._update)
         self.DeclareForcedDiscreteUpdateEvent(self._update)
         self.DeclareStateOutputPort("keypoints", self._state)
-        self.DeclareVectorOutputPort(
-            "remembered_far_corners",
-            6,
-            self._calc_remembered,
-            {
-                self.discrete_state_ticket(self._trusted),
-                self.discrete_state_ticket(self._trust),
-            },
-        )
-
-    def _calc_remembered(self, context, output):
-        trusted, seen = context.get_discrete_state(self._trust).value()
-        if trusted > 0.5 or seen < 0.5:
-            output.SetFromVector(np.full(6, np.nan))
-            return
-        p = context.get_discrete_state(self._trusted).value().reshape(-1, 3)
-        output.SetFromVector(p[self._far].ravel())
+        self.DeclareStateOutputPort("remembered_far_corners", self._remembered)
 
     def _update(self, context, discrete_state) -> EventStatus:
         mask = self._mask.Eval(context).data[:, :, 0]
@@ -152,12 +137,14 @@ class KeypointEstimator(LeafSystem):
             p_W, PlanarPose.FromRigidTransform(self._pose.Eval(context))
         )
         discrete_state.get_mutable_vector(self._state).SetFromVector(p_O.ravel())
-        seen = context.get_discrete_state(self._trust).value()[1] > 0.5
+        remembered = np.full(6, np.nan)
         if trusted:
-            discrete_state.get_mutable_vector(self._trusted).SetFromVector(p_O.ravel())
-        discrete_state.get_mutable_vector(self._trust).SetFromVector(
-            [float(trusted), float(seen or trusted)]
-        )
+            discrete_state.get_mutable_vector(self._last_good_far).SetFromVector(
+                p_O[self._far].ravel()
+            )
+        else:
+            remembered = context.get_discrete_state(self._last_good_far).value()
+        discrete_state.get_mutable_vector(self._remembered).SetFromVector(remembered)
         return EventStatus.Succeeded()
 
 
