@@ -147,13 +147,53 @@ def HomeSeed(plant: MultibodyPlant) -> np.ndarray:
 
 def AddArmActuators(plant: MultibodyPlant, instance, config: PandaConfig) -> None:
     """PD-controlled actuators: the simulated position-controlled driver
-    (arm joints) and fingers held open. Gravity is off for the arms: the real
-    driver compensates it."""
+    (arm joints) and fingers held open. The arms have their weight; the
+    driver compensates it (GravityCompensatedCommand)."""
     for name in ArmJointNames() + ["panda_finger_joint1", "panda_finger_joint2"]:
         joint = plant.GetJointByName(name, instance)
         actuator = plant.AddJointActuator(f"{name}_actuator", joint, 1000.0)
         actuator.set_controller_gains(PdControllerGains(p=config.kp, d=config.kd))
-    plant.gravity_field().set_enabled(instance, False)
+
+
+class GravityCompensatedCommand(LeafSystem):
+    """The simulated driver's gravity compensation: the desired state
+    (9 positions, 9 velocities of one arm and its fingers) with each arm
+    joint's position moved by -tau_g(q_d) / kp, so that the plant's joint PD
+    adds -tau_g(q_d) to its torque and holds the arm's weight at q_d (as the
+    real driver's position control does).
+
+    The arms used to have gravity switched off instead. Then the PD's
+    impulses vanish at rest, and Drake 1.58's SAP solver, whose tolerance is
+    relative to them, failed to converge about 1.1 s into a hold (box_panda,
+    hang_panda and prior_panda with zero actions from the start, measured);
+    holding the weight keeps them finite.
+
+    Args:
+        plant: a model of the arms with gravity (the IK's control model).
+        instance: the arm's model instance in `plant`.
+        kp: the joint PD's stiffness [N m / rad].
+    """
+
+    def __init__(self, plant: MultibodyPlant, instance, kp: float):
+        super().__init__()
+        self._plant = plant
+        self._instance = instance
+        self._context = plant.CreateDefaultContext()
+        self._kp = kp
+        n = plant.num_positions(instance)
+        self.DeclareVectorInputPort("desired_state", 2 * n)
+        self.DeclareVectorOutputPort("desired_state", 2 * n, self._calc)
+
+    def _calc(self, context, output):
+        x = self.get_input_port().Eval(context).copy()
+        plant, instance = self._plant, self._instance
+        n = plant.num_positions(instance)
+        plant.SetPositions(self._context, instance, x[:n])
+        tau = plant.GetVelocitiesFromArray(
+            instance, plant.CalcGravityGeneralizedForces(self._context)
+        )
+        x[:ARM_JOINTS] -= tau[:ARM_JOINTS] / self._kp
+        output.SetFromVector(x)
 
 
 @dc.dataclass
@@ -528,10 +568,7 @@ class PandaGrippers:
                 diff_ik.commands[side].GetOutputPort("position"),
                 interpolator.get_input_port(),
             )
-            builder.Connect(
-                interpolator.get_output_port(),
-                plant.get_desired_state_input_port(self.instances[side]),
-            )
+            self._ConnectDesiredState(builder, side, interpolator.get_output_port())
             builder.ExportOutput(
                 tcp.GetOutputPort(side), StationPorts.ee_measured(side)
             )
@@ -546,6 +583,24 @@ class PandaGrippers:
                 arm_q.get_output_port(0), f"{InstanceName(side)}.position_measured"
             )
         return diff_ik.initialize
+
+    def _ConnectDesiredState(self, builder, side: str, desired_state) -> None:
+        """desired_state -> the driver's gravity compensation -> the arm's
+        PD actuators in the station plant."""
+        control = self.ik.robot.plant()
+        compensation = builder.AddNamedSystem(
+            f"{side}.gravity_compensation",
+            GravityCompensatedCommand(
+                control,
+                control.GetModelInstanceByName(InstanceName(side)),
+                self.scenario.grippers.panda.kp,
+            ),
+        )
+        builder.Connect(desired_state, compensation.get_input_port())
+        builder.Connect(
+            compensation.get_output_port(),
+            self.plant.get_desired_state_input_port(self.instances[side]),
+        )
 
     def _WireJointCommands(self, builder, tcp) -> None:
         from fabric_imitation.diagrams.station import StationPorts
@@ -566,10 +621,7 @@ class PandaGrippers:
                 StateInterpolatorWithDiscreteDerivative(ARM_JOINTS + 2, dt, True),
             )
             builder.Connect(command.get_output_port(), interpolator.get_input_port())
-            builder.Connect(
-                interpolator.get_output_port(),
-                self.plant.get_desired_state_input_port(self.instances[side]),
-            )
+            self._ConnectDesiredState(builder, side, interpolator.get_output_port())
             state = builder.AddNamedSystem(
                 f"{side}.arm_state", Demultiplexer([ARM_JOINTS, 2, ARM_JOINTS, 2])
             )
@@ -587,9 +639,9 @@ class PandaGrippers:
 def AddPandaGrippers(
     builder, plant: MultibodyPlant, scene_graph, scenario: Scenario, corners: dict
 ) -> PandaGrippers:
-    """Adds both arms to the station plant (before Finalize): models, PD
-    actuators of the simulated driver, no gravity (the driver compensates it);
-    solves the grasp configuration on the control model."""
+    """Adds both arms to the station plant (before Finalize): models and
+    the PD actuators of the simulated driver (which compensates the arms'
+    weight); solves the grasp configuration on the control model."""
     config = scenario.grippers.panda
     dt = scenario.plant_config.time_step
     ik = MakeBimanualIk(scenario, dt)

@@ -97,6 +97,17 @@ def test_hands_follow_a_10cm_target_step_within_5mm(make):
         assert error < 0.005, (side, error)
 
 
+@pytest.mark.parametrize("make", [sim_rig, lcm_rig], ids=["simulated", "lcm"])
+def test_hands_hold_still_at_their_targets(make):
+    """Targets held from the start: the arms, which have their weight (the
+    driver compensates it), come to rest on them. With gravity off the SAP
+    solver failed to converge 1.13 s into such a hold."""
+    rig = make()
+    rig.simulator.AdvanceTo(2.0)
+    for side in SIDES:
+        assert np.linalg.norm(rig.hand(side) - rig.corners[side]) < 0.002
+
+
 def test_joint_limits_hold_for_200_random_targets(rng):
     rig = sim_rig()
     plant = rig.built.plant
