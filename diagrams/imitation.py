@@ -47,7 +47,12 @@ from fabric_imitation.diagrams.station import (
 )
 from fabric_imitation.diagrams.success import TaskSuccess
 from fabric_imitation.learning.demo_io import Demo, LoadDemo
-from fabric_imitation.learning.demo_learning import DemoModel, learn_from_demo
+from fabric_imitation.learning.demo_learning import (
+    DemoModel,
+    RewardConfig,
+    learn_from_demo,
+    track_grasped_corners,
+)
 from fabric_imitation.learning.errors import InputError
 from fabric_imitation.learning.geometry import PinholeCamera
 from fabric_imitation.learning.metrics import (
@@ -117,10 +122,15 @@ def _object_size(scenario: Scenario) -> np.ndarray | None:
     )
 
 
-def DemoStates(priors: Priors, demo: Demo) -> np.ndarray:
-    """S_E^1..T: f_R on every demo frame, in the demo's object frame."""
-    p_W = priors.keypoints(demo.mask, demo.depth)
-    return world_to_object(p_W, demo.object_pose)
+def DemoStates(
+    priors: Priors, demo: Demo, config: RewardConfig | None = None
+) -> np.ndarray:
+    """S_E^1..T: f_R on every demo frame, in the demo's object frame, with
+    the grasped corners tracked through the frames (track_grasped_corners;
+    `config`: the scenario's reward settings)."""
+    p_W, spread = priors.keypoints_and_spread(demo.mask, demo.depth)
+    states = world_to_object(p_W, demo.object_pose)
+    return track_grasped_corners(states, spread, config or RewardConfig())
 
 
 def DefaultDemoDir(scenario_name: str, scenario: Scenario) -> Path:
@@ -182,7 +192,7 @@ def PrepareImitation(
         )
     if priors.prior_states is None:
         raise InputError(f"priors {priors_dir} carry no prior states for f_A")
-    states = DemoStates(priors, demo)
+    states = DemoStates(priors, demo, scenario.reward)
     model, info = learn_from_demo(states, priors.prior_states, scenario.reward)
     nets = None
     if baselines:

@@ -65,6 +65,12 @@ class KeypointNet(nn.Module):
         return self.head(self.dec1(torch.cat([up(d2, e1), e1], 1)))
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return self.locate(x)[0]
+
+    def locate(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """(B, M, 2) pixel coordinates (the soft-argmax, as `forward`) and
+        (B, M) their spread [px]: the standard deviation of each keypoint's
+        heatmap distribution, small where f_R is sure of a keypoint."""
         H, W = x.shape[-2:]
         logits = self.heatmaps(x)
         B, M, h, w = logits.shape
@@ -73,9 +79,11 @@ class KeypointNet(nn.Module):
         ys = (torch.arange(h, dtype=x.dtype) + 0.5) * (H / h) - 0.5
         xs = (torch.arange(w, dtype=x.dtype) + 0.5) * (W / w) - 0.5
         gy, gx = torch.meshgrid(ys, xs, indexing="ij")
-        u = (prob * gx.reshape(-1)).sum(-1)
-        v = (prob * gy.reshape(-1)).sum(-1)
-        return torch.stack([u, v], -1)
+        gx, gy = gx.reshape(-1), gy.reshape(-1)
+        u = (prob * gx).sum(-1)
+        v = (prob * gy).sum(-1)
+        var = (prob * ((gx - u[..., None]) ** 2 + (gy - v[..., None]) ** 2)).sum(-1)
+        return torch.stack([u, v], -1), var.clamp(min=0).sqrt()
 
 
 @dc.dataclass

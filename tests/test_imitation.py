@@ -9,6 +9,7 @@ from fabric_imitation.learning.demo_learning import (
     DemoModel,
     RewardConfig,
     learn_from_demo,
+    track_grasped_corners,
 )
 from fabric_imitation.learning.mpc import Mpc, MpcConfig
 from fabric_imitation.learning.polygon import iou
@@ -171,6 +172,51 @@ def test_progress_grasp_weight_follows_the_measured_corners():
         torch.as_tensor(states)
     )
     assert J.tolist() == list(range(len(states)))
+
+
+def test_grasped_corners_are_tracked_through_misread_demo_frames():
+    """s1 and s2 (keypoints 0 and 2) move 3 cm a frame. f_R misreads s1 in
+    frame 5 while sure of it (spread 3 px) and is unsure of s2 in the last
+    three frames (spread 14 px, estimates 12 cm off): the tracked corners
+    follow the true path; the other keypoints stay f_R's."""
+    T = 12
+    truth = np.stack([square(0.0, -0.03 * t, 0.3, z=0.1) for t in range(T)])
+    est = truth.copy()
+    est[5, 0] += [0.2, 0.1, 0.0]
+    est[-3:, 2] += [-0.12, 0.0, 0.0]
+    est[3, 4] += [0.2, 0.0, 0.0]  # a far corner: left as it is
+    spread = np.full((T, 8), 3.0)
+    spread[-3:, 2] = 14.0
+    on = RewardConfig(demo_grasp_max_spread_px=9.0, demo_grasp_max_jump=0.08)
+    tracked = track_grasped_corners(est, spread, on)
+    np.testing.assert_allclose(tracked[:, [0, 2]], truth[:, [0, 2]], atol=1e-6)
+    np.testing.assert_array_equal(tracked[:, [1, 3, 4, 5, 6, 7]], est[:, [1, 3, 4, 5, 6, 7]])
+    # Off (the default): f_R's estimates unchanged.
+    np.testing.assert_array_equal(track_grasped_corners(est, spread, RewardConfig()), est)
+    with pytest.raises(ValueError, match="reward.demo_grasp_max_jump"):
+        RewardConfig(demo_grasp_max_jump=0.0)
+
+
+def test_keypoint_net_spread_is_small_where_the_heatmap_is_sharp():
+    from fabric_imitation.learning.models import KeypointNet, KeypointNetConfig
+
+    net = KeypointNet(KeypointNetConfig(num_keypoints=2)).eval()
+    x = torch.zeros(1, 2, 32, 32)
+    x[0, 0, 8:24, 8:24] = 1.0
+
+    def sharp_and_flat(_):
+        logits = torch.zeros(1, 2, 16, 16)
+        logits[0, 0, 4, 10] = 50.0  # all mass in one cell
+        return logits
+
+    net.heatmaps = sharp_and_flat
+    uv, spread = net.locate(x)
+    torch.testing.assert_close(uv, net(x))
+    # A cell of the 16 x 16 heatmap spans 2 input pixels.
+    torch.testing.assert_close(uv[0, 0], torch.tensor([20.5, 8.5]))
+    assert float(spread[0, 0]) < 1e-3
+    # A flat heatmap: the spread of a uniform 32 x 32 square, 32 / sqrt(6).
+    assert abs(float(spread[0, 1]) - 32 / math.sqrt(6)) < 0.05
 
 
 def test_registration_recovers_a_known_rigid_transform():
