@@ -564,7 +564,17 @@ def _plot_curves(cells: dict, path: Path) -> None:
             f"return (+{SUCCESS_REWARD:g} success, {WARNING_REWARD:g} per rule break)"
         )
         for ax in axes[:, col]:
-            ax.legend(fontsize=7)
+            if ax.get_legend_handles_labels()[0]:
+                ax.legend(fontsize=7)
+            else:  # only failed or empty trials: nothing to plot
+                ax.text(
+                    0.5,
+                    0.5,
+                    "no data",
+                    ha="center",
+                    va="center",
+                    transform=ax.transAxes,
+                )
     fig.tight_layout()
     fig.savefig(path, dpi=90)
     plt.close(fig)

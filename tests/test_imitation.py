@@ -190,9 +190,13 @@ def test_grasped_corners_are_tracked_through_misread_demo_frames():
     on = RewardConfig(demo_grasp_max_spread_px=9.0, demo_grasp_max_jump=0.08)
     tracked = track_grasped_corners(est, spread, on)
     np.testing.assert_allclose(tracked[:, [0, 2]], truth[:, [0, 2]], atol=1e-6)
-    np.testing.assert_array_equal(tracked[:, [1, 3, 4, 5, 6, 7]], est[:, [1, 3, 4, 5, 6, 7]])
+    np.testing.assert_array_equal(
+        tracked[:, [1, 3, 4, 5, 6, 7]], est[:, [1, 3, 4, 5, 6, 7]]
+    )
     # Off (the default): f_R's estimates unchanged.
-    np.testing.assert_array_equal(track_grasped_corners(est, spread, RewardConfig()), est)
+    np.testing.assert_array_equal(
+        track_grasped_corners(est, spread, RewardConfig()), est
+    )
     with pytest.raises(ValueError, match="reward.demo_grasp_max_jump"):
         RewardConfig(demo_grasp_max_jump=0.0)
 
