@@ -158,9 +158,11 @@ def AddArmActuators(plant: MultibodyPlant, instance, config: PandaConfig) -> Non
 class GravityCompensatedCommand(LeafSystem):
     """The simulated driver's gravity compensation: the desired state
     (9 positions, 9 velocities of one arm and its fingers) with each arm
-    joint's position moved by -tau_g(q_d) / kp, so that the plant's joint PD
-    adds -tau_g(q_d) to its torque and holds the arm's weight at q_d (as the
-    real driver's position control does).
+    joint's position moved by -tau_g(q) / kp, q the arm's measured
+    positions, so that the plant's joint PD adds -tau_g(q) to its torque and
+    holds the arm's weight (as the real driver's position control does); the
+    arm then moves as a weightless arm under the plain PD would, up to the
+    one-step lag of q.
 
     The arms used to have gravity switched off instead. Then the PD's
     impulses vanish at rest, and Drake 1.58's SAP solver, whose tolerance is
@@ -172,6 +174,9 @@ class GravityCompensatedCommand(LeafSystem):
         plant: a model of the arms with gravity (the IK's control model).
         instance: the arm's model instance in `plant`.
         kp: the joint PD's stiffness [N m / rad].
+
+    Input ports: ``desired_state`` (2n), ``measured_state`` (2n: the
+    station plant's state of the arm). Output: ``desired_state`` (2n).
     """
 
     def __init__(self, plant: MultibodyPlant, instance, kp: float):
@@ -181,14 +186,15 @@ class GravityCompensatedCommand(LeafSystem):
         self._context = plant.CreateDefaultContext()
         self._kp = kp
         n = plant.num_positions(instance)
-        self.DeclareVectorInputPort("desired_state", 2 * n)
+        self._desired = self.DeclareVectorInputPort("desired_state", 2 * n)
+        self._measured = self.DeclareVectorInputPort("measured_state", 2 * n)
         self.DeclareVectorOutputPort("desired_state", 2 * n, self._calc)
 
     def _calc(self, context, output):
-        x = self.get_input_port().Eval(context).copy()
+        x = self._desired.Eval(context).copy()
         plant, instance = self._plant, self._instance
         n = plant.num_positions(instance)
-        plant.SetPositions(self._context, instance, x[:n])
+        plant.SetPositions(self._context, instance, self._measured.Eval(context)[:n])
         tau = plant.GetVelocitiesFromArray(
             instance, plant.CalcGravityGeneralizedForces(self._context)
         )
@@ -596,7 +602,11 @@ class PandaGrippers:
                 self.scenario.grippers.panda.kp,
             ),
         )
-        builder.Connect(desired_state, compensation.get_input_port())
+        builder.Connect(desired_state, compensation.GetInputPort("desired_state"))
+        builder.Connect(
+            self.plant.get_state_output_port(self.instances[side]),
+            compensation.GetInputPort("measured_state"),
+        )
         builder.Connect(
             compensation.get_output_port(),
             self.plant.get_desired_state_input_port(self.instances[side]),
