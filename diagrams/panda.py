@@ -185,7 +185,7 @@ class GravityCompensatedCommand(LeafSystem):
         self._instance = instance
         self._context = plant.CreateDefaultContext()
         self._kp = kp
-        n = plant.num_positions(instance)
+        self._n = n = plant.num_positions(instance)
         self._desired = self.DeclareVectorInputPort("desired_state", 2 * n)
         self._measured = self.DeclareVectorInputPort("measured_state", 2 * n)
         self.DeclareVectorOutputPort("desired_state", 2 * n, self._calc)
@@ -193,8 +193,8 @@ class GravityCompensatedCommand(LeafSystem):
     def _calc(self, context, output):
         x = self._desired.Eval(context).copy()
         plant, instance = self._plant, self._instance
-        n = plant.num_positions(instance)
-        plant.SetPositions(self._context, instance, self._measured.Eval(context)[:n])
+        q = self._measured.Eval(context)[: self._n]
+        plant.SetPositions(self._context, instance, q)
         tau = plant.GetVelocitiesFromArray(
             instance, plant.CalcGravityGeneralizedForces(self._context)
         )

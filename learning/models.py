@@ -65,12 +65,15 @@ class KeypointNet(nn.Module):
         return self.head(self.dec1(torch.cat([up(d2, e1), e1], 1)))
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
-        return self.locate(x)[0]
+        return self._soft_argmax(x, with_spread=False)[0]
 
     def locate(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """(B, M, 2) pixel coordinates (the soft-argmax, as `forward`) and
         (B, M) their spread [px]: the standard deviation of each keypoint's
         heatmap distribution, small where f_R is sure of a keypoint."""
+        return self._soft_argmax(x, with_spread=True)
+
+    def _soft_argmax(self, x: torch.Tensor, *, with_spread: bool):
         H, W = x.shape[-2:]
         logits = self.heatmaps(x)
         B, M, h, w = logits.shape
@@ -82,8 +85,11 @@ class KeypointNet(nn.Module):
         gx, gy = gx.reshape(-1), gy.reshape(-1)
         u = (prob * gx).sum(-1)
         v = (prob * gy).sum(-1)
+        uv = torch.stack([u, v], -1)
+        if not with_spread:  # training and the control loop: no spread needed
+            return uv, None
         var = (prob * ((gx - u[..., None]) ** 2 + (gy - v[..., None]) ** 2)).sum(-1)
-        return torch.stack([u, v], -1), var.clamp(min=0).sqrt()
+        return uv, var.clamp(min=0).sqrt()
 
 
 @dc.dataclass

@@ -106,12 +106,15 @@ class Priors:
     def keypoints(self, mask, depth) -> np.ndarray:
         """World keypoints (B, M, 3) (or (M, 3) for one image) from fabric masks
         and depth images (metres) of this camera."""
-        return self.keypoints_and_spread(mask, depth)[0]
+        return self._keypoints(mask, depth, with_spread=False)[0]
 
     @torch.no_grad()
     def keypoints_and_spread(self, mask, depth) -> tuple[np.ndarray, np.ndarray]:
         """`keypoints` and f_R's spread of each, in pixels (B, M) (or (M,)):
         the standard deviation of its heatmap (KeypointNet.locate)."""
+        return self._keypoints(mask, depth, with_spread=True)
+
+    def _keypoints(self, mask, depth, *, with_spread: bool):
         single = np.ndim(mask) == 2
         mask_t, depth_t = _batch_images(mask), _batch_images(depth)
         if tuple(mask_t.shape[-2:]) != self.image_size:
@@ -119,10 +122,15 @@ class Priors:
                 f"images are {tuple(mask_t.shape[-2:])}, the priors "
                 f"were trained on {self.image_size}"
             )
-        uv, spread = self.f_R.locate(image_input(self.camera, mask_t, depth_t))
+        x = image_input(self.camera, mask_t, depth_t)
+        spread = None
+        if with_spread:
+            uv, spread = self.f_R.locate(x)
+            spread = spread.numpy()[0] if single else spread.numpy()
+        else:
+            uv = self.f_R(x)
         p = self.camera.back_project(uv, depth_t, mask_t).numpy()
-        spread = spread.numpy()
-        return (p[0], spread[0]) if single else (p, spread)
+        return (p[0] if single else p), spread
 
     @torch.no_grad()
     def forward(self, S, A) -> torch.Tensor:
