@@ -28,6 +28,7 @@ from pydrake.multibody.plant import MultibodyPlant
 from pydrake.multibody.tree import PdControllerGains
 from pydrake.planning import (
     DofMask,
+    JointLimits,
     RobotDiagramBuilder,
     SceneGraphCollisionChecker,
 )
@@ -236,6 +237,27 @@ def MakeBimanualIk(scenario: Scenario, dt: float) -> BimanualIk:
     recipe.AddIngredient(
         DifferentialInverseKinematicsSystem.JointCenteringCost(
             DifferentialInverseKinematicsSystem.JointCenteringCost.Config()
+        )
+    )
+    # The model's joint limits: velocities up to `joint_velocity_scale` of
+    # theirs, and near a position limit the velocity towards it scaled down
+    # to zero (Drake's default margins, 0.0025 / 0.1 rad). Without them an
+    # arm at full stretch flipped its elbow through straight (joint 4 past
+    # its -0.07 rad limit) and whipped the hand 5 cm in 10 ms, which
+    # diverged the cloth (hang_panda, plate turned 37 degrees; README).
+    model = JointLimits(plant)
+    scale = config.joint_velocity_scale
+    recipe.AddIngredient(
+        DifferentialInverseKinematicsSystem.JointVelocityLimitConstraint(
+            DifferentialInverseKinematicsSystem.JointVelocityLimitConstraint.Config(),
+            JointLimits(
+                model.position_lower(),
+                model.position_upper(),
+                scale * model.velocity_lower(),
+                scale * model.velocity_upper(),
+                model.acceleration_lower(),
+                model.acceleration_upper(),
+            ),
         )
     )
     speed = config.max_hand_speed
