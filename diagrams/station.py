@@ -401,8 +401,13 @@ def _add_vbd_cloth(builder, scene_graph, scenario, mesh, X_WC, X_WO):
     )
     top = mesh.top_layer.ravel()
     colliders = [
-        BoxCollider(X_WB, tuple(size), mu)
-        for X_WB, size, mu in _static_boxes(scenario, X_WO).values()
+        BoxCollider(
+            X_WB,
+            tuple(size),
+            mu,
+            surface_contact=name != "table" or vbd.table_surface_contact,
+        )
+        for name, (X_WB, size, mu) in _static_boxes(scenario, X_WO).items()
     ]
     fields = {f.name for f in dc.fields(VbdSettings)}
     settings = VbdSettings(

@@ -49,11 +49,13 @@ class ClothDivergedError(RuntimeError):
 @dc.dataclass(frozen=True)
 class BoxCollider:
     """A static box the cloth collides with: pose of its centre, full size
-    [m], Coulomb friction."""
+    [m], Coulomb friction, and whether the cloth's edges and faces touch it
+    as well as its particles (where `VbdSettings.surface_contact` is on)."""
 
     X_WB: RigidTransform
     size: tuple[float, float, float]
     friction: float
+    surface_contact: bool = True
 
 
 @dc.dataclass(frozen=True)
@@ -318,6 +320,23 @@ class ClothSimulator(LeafSystem):
         return self._engine
 
 
+def _particle_contact_only(wp, pipeline, shapes) -> None:
+    """Leaves `shapes` out of the pipeline's edge and face contact passes
+    (newton sets those pairs up for every shape), so the cloth touches them
+    with its particles only. Raises if this newton keeps its pairs
+    elsewhere."""
+    for name in ("soft_edge_rigid_pairs", "soft_face_rigid_pairs"):
+        pairs = getattr(pipeline, name, None)
+        if pairs is None or pairs.dtype != wp.vec2i:
+            raise RuntimeError(
+                f"newton's CollisionPipeline has no {name} (vec2i) to leave "
+                "shapes out of; set cloth.vbd.table_surface_contact: true"
+            )
+        p = pairs.numpy()
+        keep = ~np.isin(p[:, 1], shapes)
+        setattr(pipeline, name, wp.array(p[keep], dtype=wp.vec2i, device=pairs.device))
+
+
 class _VbdEngine:
     """The newton model, solver and captured step behind ClothSimulator."""
 
@@ -340,6 +359,7 @@ class _VbdEngine:
         self._dt = time_step
         self._s = settings
         builder = newton.ModelBuilder(gravity=(0.0, 0.0, -9.81))
+        particle_only = []  # shapes the cloth touches with its particles only
         for box in colliders:
             cfg = newton.ModelBuilder.ShapeConfig(
                 mu=box.friction,
@@ -348,7 +368,7 @@ class _VbdEngine:
             )
             p = box.X_WB.translation()
             q = box.X_WB.rotation().ToQuaternion()  # w, x, y, z
-            builder.add_shape_box(
+            shape = builder.add_shape_box(
                 -1,
                 xform=wp.transform(wp.vec3(*p), wp.quat(q.x(), q.y(), q.z(), q.w())),
                 hx=box.size[0] / 2,
@@ -356,6 +376,8 @@ class _VbdEngine:
                 hz=box.size[2] / 2,
                 cfg=cfg,
             )
+            if not box.surface_contact:
+                particle_only.append(shape)
         builder.add_cloth_mesh(
             pos=wp.vec3(0.0, 0.0, 0.0),
             rot=wp.quat_identity(),
@@ -383,6 +405,8 @@ class _VbdEngine:
             soft_contact_gap=settings.contact_distance,
             enable_rigid_soft_full_surface_contact=settings.surface_contact,
         )
+        if settings.surface_contact and particle_only:
+            _particle_contact_only(wp, self._pipeline, particle_only)
         self._contacts = self._pipeline.contacts()
         self._states = [model.state(), model.state()]
         self._control = model.control()
