@@ -107,3 +107,37 @@ def test_bad_engine_settings_are_one_line_errors(text, message):
     with pytest.raises(InputError, match=message) as e:
         LoadScenario(scenario_name="box", scenario_text=text)
     assert "\n" not in str(e.value)
+
+
+def _drop_on_table(table_surface_contact: bool):
+    text = (
+        "cloth: {resolution: [6, 6, 2], vbd: {resolution: [6, 6], "
+        f"table_surface_contact: {str(table_surface_contact).lower()}}}}}\n"
+    )
+    scenario = LoadScenario(scenario_name="box", scenario_text=text)
+    run = OpenLoopRun(scenario, actions=np.zeros((1, 6)), release_step=0)
+    run.advance_to(0.5)
+    engine = run.station.diagram.GetSubsystemByName("vbd_cloth")._engine
+    pipeline = engine._pipeline
+    shapes = {
+        name: set(getattr(pipeline, name).numpy()[:, 1].tolist())
+        for name in ("soft_edge_rigid_pairs", "soft_face_rigid_pairs")
+    }
+    return shapes, run.capture_positions()
+
+
+def test_the_table_touches_the_cloths_particles_only_and_holds_it_as_before():
+    """Shape 0 is the table, 1 the box. The table top is flat, so particle
+    contact alone holds the cloth on it: released onto it, the cloth rests
+    where it rests with edge and face contact as well (within 0.1 mm)."""
+    shapes, resting = _drop_on_table(False)
+    assert shapes == {"soft_edge_rigid_pairs": {1}, "soft_face_rigid_pairs": {1}}
+    shapes_all, resting_all = _drop_on_table(True)
+    assert shapes_all == {
+        "soft_edge_rigid_pairs": {0, 1},
+        "soft_face_rigid_pairs": {0, 1},
+    }
+    on_table = resting_all[:, 2] < 0.02
+    assert on_table.sum() > 20
+    assert np.abs(resting[on_table, 2] - resting_all[on_table, 2]).max() < 1e-4
+    assert resting[:, 2].min() > -1e-4  # nothing sinks into the table
