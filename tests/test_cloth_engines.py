@@ -126,10 +126,12 @@ def _drop_on_table(table_surface_contact: bool):
     return shapes, run.capture_positions()
 
 
-def test_the_table_touches_the_cloths_particles_only_and_holds_it_as_before():
-    """Shape 0 is the table, 1 the box. The table top is flat, so particle
-    contact alone holds the cloth on it: released onto it, the cloth rests
-    where it rests with edge and face contact as well (within 0.1 mm)."""
+def test_a_table_touching_the_particles_only_holds_the_cloth_as_before():
+    """`cloth.vbd.table_surface_contact: false` leaves the table (shape 0;
+    the box is 1) out of the edge and face contact passes. The table top is
+    flat, so particle contact alone holds the cloth on it: released onto
+    it, the cloth rests where it rests with edge and face contact as well
+    (within 0.1 mm)."""
     shapes, resting = _drop_on_table(False)
     assert shapes == {"soft_edge_rigid_pairs": {1}, "soft_face_rigid_pairs": {1}}
     shapes_all, resting_all = _drop_on_table(True)
