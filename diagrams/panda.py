@@ -245,18 +245,18 @@ def MakeBimanualIk(scenario: Scenario, dt: float) -> BimanualIk:
     # arm at full stretch flipped its elbow through straight (joint 4 past
     # its -0.07 rad limit) and whipped the hand 5 cm in 10 ms, which
     # diverged the cloth (hang_panda, plate turned 37 degrees; README).
-    model = JointLimits(plant)
+    limits = JointLimits(plant)
     scale = config.joint_velocity_scale
     recipe.AddIngredient(
         DifferentialInverseKinematicsSystem.JointVelocityLimitConstraint(
             DifferentialInverseKinematicsSystem.JointVelocityLimitConstraint.Config(),
             JointLimits(
-                model.position_lower(),
-                model.position_upper(),
-                scale * model.velocity_lower(),
-                scale * model.velocity_upper(),
-                model.acceleration_lower(),
-                model.acceleration_upper(),
+                limits.position_lower(),
+                limits.position_upper(),
+                scale * limits.velocity_lower(),
+                scale * limits.velocity_upper(),
+                limits.acceleration_lower(),
+                limits.acceleration_upper(),
             ),
         )
     )

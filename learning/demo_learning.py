@@ -47,12 +47,11 @@ class RewardConfig:
     # f_R is unsure of it (heatmap spread above `demo_grasp_max_spread_px`
     # pixels; 3-5 px where it reads the demo right) or where it lies more than
     # `demo_grasp_max_jump` [m] from the median of its neighbours' (two frames
-    # either side; the demo grippers move about 3 cm a frame). Dropped frames
-    # are filled from the other corner (track_grasped_corners). Both
-    # corners steer the grasp prior and
-    # w_grasp. On the shipped hang demo f_R misreads them where the towel
-    # hangs over the plate (s1 24 cm off at one frame, s2 5-14 cm off in the
-    # last four). .inf for both (the default): f_R's raw estimates (the
+    # either side; the demo grippers move about 3 cm a frame), and filled
+    # from the other corner or interpolated. Both corners steer the grasp
+    # prior and w_grasp. On the shipped hang demo f_R misreads them where
+    # the towel hangs over the plate (s1 24 cm off at one frame, s2 5-14 cm
+    # off in the last four). .inf for both (the default): f_R's raw estimates (the
     # paper's); `hang`, whose grasp prior and grasp terms lean on these
     # corners, sets 9 px and 0.08 m (scenarios.yaml).
     demo_grasp_max_spread_px: float = math.inf
