@@ -405,7 +405,7 @@ def _add_vbd_cloth(builder, scene_graph, scenario, mesh, X_WC, X_WO):
             X_WB,
             tuple(size),
             mu,
-            surface_contact=name != "table" or vbd.table_surface_contact,
+            contact=vbd.table_contact if name == "table" else "surface",
         )
         for name, (X_WB, size, mu) in _static_boxes(scenario, X_WO).items()
     ]

@@ -88,16 +88,18 @@ class VbdConfig:
     # slipped between the hang towel's particles 1.5 cm apart and the towel
     # slid off (scripted hang failed; succeeded with it, about 10% slower).
     surface_contact: bool = True
-    # ... with the table too. Off, the table touches the cloth's particles
-    # only: its top is flat, so a triangle whose particles lie above it lies
-    # above it, and the captured newton step of the box scene lying flat
-    # fell 7.3 -> 5.3 ms; but the cloth meets the table differently where it
-    # folds onto it: after the scripted box cover the side flaps stood 4.3
-    # cm out from the box instead of 1.8 cm, and hang's imitation gave 39 of
-    # 50 against 43 of 50 (README, Performance). Keeping the table's edge
-    # contact and dropping only its face contact kept the drape (1.8 cm) for
-    # 7.3 -> 6.4 ms; not offered, not evaluated.
-    table_surface_contact: bool = True
+    # Which of the cloth's elements the table touches where surface_contact
+    # is on: "surface" (particles, edges and faces), "edges" (particles and
+    # edges) or "particles". Its top is flat, so a triangle whose particles
+    # lie above it lies above it, and leaving elements out only drops
+    # contact records (flat on it, the 16 x 16 sheet's 705 edges and 450
+    # faces besides its 256 particles): the captured newton step of the box
+    # scene lying flat took 7.3 ms with "surface", 6.3-6.4 with "edges" and
+    # 5.3 with "particles". But the cloth meets the table differently where
+    # it folds onto it: with "particles" the scripted box cover's side flaps
+    # stood 4.3 cm out from the box instead of 1.8 cm, and hang's imitation
+    # gave 39 of 50 against 43 of 50 (README, Performance).
+    table_contact: str = "surface"
 
     def __post_init__(self):
         _check(
@@ -111,6 +113,11 @@ class VbdConfig:
             self.substeps,
         )
         _check(self.iterations >= 1, "cloth.vbd.iterations", self.iterations)
+        _check(
+            self.table_contact in ("surface", "edges", "particles"),
+            "cloth.vbd.table_contact (surface, edges or particles)",
+            self.table_contact,
+        )
         for name in (
             "stretch_stiffness",
             "area_stiffness",

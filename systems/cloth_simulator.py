@@ -49,13 +49,30 @@ class ClothDivergedError(RuntimeError):
 @dc.dataclass(frozen=True)
 class BoxCollider:
     """A static box the cloth collides with: pose of its centre, full size
-    [m], Coulomb friction, and whether the cloth's edges and faces touch it
-    as well as its particles (where `VbdSettings.surface_contact` is on)."""
+    [m], Coulomb friction, and which of the cloth's elements touch it where
+    `VbdSettings.surface_contact` is on (CONTACT_ELEMENTS: "surface"
+    particles, edges and faces; "edges" particles and edges; "particles")."""
 
     X_WB: RigidTransform
     size: tuple[float, float, float]
     friction: float
-    surface_contact: bool = True
+    contact: str = "surface"
+
+    def __post_init__(self):
+        if self.contact not in CONTACT_ELEMENTS:
+            raise ValueError(
+                f"unknown contact {self.contact!r} (one of: "
+                f"{', '.join(CONTACT_ELEMENTS)})"
+            )
+
+
+# The newton collision pipeline's edge and face contact pairs that each
+# BoxCollider.contact leaves the box out of.
+CONTACT_ELEMENTS = {
+    "surface": (),
+    "edges": ("soft_face_rigid_pairs",),
+    "particles": ("soft_edge_rigid_pairs", "soft_face_rigid_pairs"),
+}
 
 
 @dc.dataclass(frozen=True)
@@ -320,17 +337,17 @@ class ClothSimulator(LeafSystem):
         return self._engine
 
 
-def _particle_contact_only(wp, pipeline, shapes) -> None:
-    """Leaves `shapes` out of the pipeline's edge and face contact passes
-    (newton sets those pairs up for every shape), so the cloth touches them
-    with its particles only. Raises if this newton keeps its pairs
-    elsewhere."""
-    for name in ("soft_edge_rigid_pairs", "soft_face_rigid_pairs"):
+def _leave_out_of_contact_pairs(wp, pipeline, left_out: dict) -> None:
+    """Leaves shapes out of the pipeline's edge or face contact passes
+    (newton sets those pairs up for every shape): `left_out` maps a pair
+    list's name (CONTACT_ELEMENTS) to the shape indices to drop from it.
+    Raises if this newton keeps its pairs elsewhere."""
+    for name, shapes in left_out.items():
         pairs = getattr(pipeline, name, None)
         if pairs is None or pairs.dtype != wp.vec2i:
             raise RuntimeError(
                 f"newton's CollisionPipeline has no {name} (vec2i) to leave "
-                "shapes out of; set cloth.vbd.table_surface_contact: true"
+                "shapes out of; set cloth.vbd.table_contact: surface"
             )
         p = pairs.numpy()
         keep = ~np.isin(p[:, 1], shapes)
@@ -359,7 +376,7 @@ class _VbdEngine:
         self._dt = time_step
         self._s = settings
         builder = newton.ModelBuilder(gravity=(0.0, 0.0, -9.81))
-        particle_only = []  # shapes the cloth touches with its particles only
+        left_out = {}  # pair list -> shapes the cloth's edges or faces skip
         for box in colliders:
             cfg = newton.ModelBuilder.ShapeConfig(
                 mu=box.friction,
@@ -376,8 +393,8 @@ class _VbdEngine:
                 hz=box.size[2] / 2,
                 cfg=cfg,
             )
-            if not box.surface_contact:
-                particle_only.append(shape)
+            for name in CONTACT_ELEMENTS[box.contact]:
+                left_out.setdefault(name, []).append(shape)
         builder.add_cloth_mesh(
             pos=wp.vec3(0.0, 0.0, 0.0),
             rot=wp.quat_identity(),
@@ -405,8 +422,8 @@ class _VbdEngine:
             soft_contact_gap=settings.contact_distance,
             enable_rigid_soft_full_surface_contact=settings.surface_contact,
         )
-        if settings.surface_contact and particle_only:
-            _particle_contact_only(wp, self._pipeline, particle_only)
+        if settings.surface_contact and left_out:
+            _leave_out_of_contact_pairs(wp, self._pipeline, left_out)
         self._contacts = self._pipeline.contacts()
         self._states = [model.state(), model.state()]
         self._control = model.control()

@@ -101,6 +101,7 @@ def test_vbd_cloth_drapes_over_the_box_and_fem_stands_out_further():
         ("cloth: {vbd: {substeps: 3}}", "cloth.vbd.substeps"),
         ("cloth: {vbd: {stifness: 1.0}}", "stifness"),
         ("cloth: {vbd: {contact_stiffness: -1.0}}", "cloth.vbd.contact_stiffness"),
+        ("cloth: {vbd: {table_contact: faces}}", "cloth.vbd.table_contact"),
     ],
 )
 def test_bad_engine_settings_are_one_line_errors(text, message):
@@ -109,10 +110,10 @@ def test_bad_engine_settings_are_one_line_errors(text, message):
     assert "\n" not in str(e.value)
 
 
-def _drop_on_table(table_surface_contact: bool):
+def _drop_on_table(table_contact: str):
     text = (
         "cloth: {resolution: [6, 6, 2], vbd: {resolution: [6, 6], "
-        f"table_surface_contact: {str(table_surface_contact).lower()}}}}}\n"
+        f"table_contact: {table_contact}}}}}\n"
     )
     scenario = LoadScenario(scenario_name="box", scenario_text=text)
     run = OpenLoopRun(scenario, actions=np.zeros((1, 6)), release_step=0)
@@ -126,20 +127,24 @@ def _drop_on_table(table_surface_contact: bool):
     return shapes, run.capture_positions()
 
 
-def test_a_table_touching_the_particles_only_holds_the_cloth_as_before():
-    """`cloth.vbd.table_surface_contact: false` leaves the table (shape 0;
-    the box is 1) out of the edge and face contact passes. The table top is
-    flat, so particle contact alone holds the cloth on it: released onto
-    it, the cloth rests where it rests with edge and face contact as well
-    (within 0.1 mm)."""
-    shapes, resting = _drop_on_table(False)
-    assert shapes == {"soft_edge_rigid_pairs": {1}, "soft_face_rigid_pairs": {1}}
-    shapes_all, resting_all = _drop_on_table(True)
+def test_the_table_touching_fewer_cloth_elements_holds_the_cloth_as_before():
+    """`cloth.vbd.table_contact: edges` leaves the table (shape 0; the box
+    is 1) out of the face contact pass, `particles` out of the edge pass as
+    well. The table top is flat, so particle contact alone holds the cloth
+    on it: released onto it, the cloth rests where it rests with edge and
+    face contact as well (within 0.1 mm)."""
+    shapes_all, resting_all = _drop_on_table("surface")
     assert shapes_all == {
         "soft_edge_rigid_pairs": {0, 1},
         "soft_face_rigid_pairs": {0, 1},
     }
     on_table = resting_all[:, 2] < 0.02
     assert on_table.sum() > 20
-    assert np.abs(resting[on_table, 2] - resting_all[on_table, 2]).max() < 1e-4
-    assert resting[:, 2].min() > -1e-4  # nothing sinks into the table
+    for contact, edge_shapes in (("edges", {0, 1}), ("particles", {1})):
+        shapes, resting = _drop_on_table(contact)
+        assert shapes == {
+            "soft_edge_rigid_pairs": edge_shapes,
+            "soft_face_rigid_pairs": {1},
+        }
+        assert np.abs(resting[on_table, 2] - resting_all[on_table, 2]).max() < 1e-4
+        assert resting[:, 2].min() > -1e-4  # nothing sinks into the table
