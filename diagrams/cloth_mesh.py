@@ -63,12 +63,22 @@ class ClothMesh:
 
 def TopTriangles(top_grid: np.ndarray) -> np.ndarray:
     """(T, 3) counter-clockwise triangles of the cloth's top face from its
-    (nx, ny) vertex grid."""
-    a = top_grid[:-1, :-1].ravel()
-    b = top_grid[1:, :-1].ravel()
-    c = top_grid[1:, 1:].ravel()
-    d = top_grid[:-1, 1:].ravel()
-    return np.concatenate([np.stack([a, b, c], 1), np.stack([a, c, d], 1)])
+    (nx, ny) vertex grid, two per cell. As in the slab's tetrahedra
+    (MakeClothMesh), the cells' diagonals alternate like a checkerboard, so
+    the sheet has no preferred shear or fold direction: with every cell
+    split along the same diagonal, the `vbd` towel hung over the plate
+    turned 40-45 degrees ended lowest at the plate's left end every time,
+    whichever way the plate was turned (scripted hang, README)."""
+    a = top_grid[:-1, :-1]
+    b = top_grid[1:, :-1]
+    c = top_grid[1:, 1:]
+    d = top_grid[:-1, 1:]
+    i, j = np.indices(a.shape)
+    mirrored = ((i + j) % 2 == 1).ravel()
+    a, b, c, d = (v.ravel() for v in (a, b, c, d))
+    first = np.where(mirrored[:, None], np.stack([a, b, d], 1), np.stack([a, b, c], 1))
+    second = np.where(mirrored[:, None], np.stack([b, c, d], 1), np.stack([a, c, d], 1))
+    return np.concatenate([first, second])
 
 
 def MakeClothMesh(
