@@ -61,20 +61,18 @@ class ClothMesh:
         return "\n".join(lines) + "\n"
 
 
-def TopTriangles(top_grid: np.ndarray) -> np.ndarray:
+def TopTriangles(top_grid: np.ndarray, checkerboard: bool = False) -> np.ndarray:
     """(T, 3) counter-clockwise triangles of the cloth's top face from its
-    (nx, ny) vertex grid, two per cell. As in the slab's tetrahedra
-    (MakeClothMesh), the cells' diagonals alternate like a checkerboard, so
-    the sheet has no preferred shear or fold direction: with every cell
-    split along the same diagonal, the `vbd` towel hung over the plate
-    turned 40-45 degrees ended lowest at the plate's left end every time,
-    whichever way the plate was turned (scripted hang, README)."""
+    (nx, ny) vertex grid, two per cell: every cell split along the same
+    diagonal, or with `checkerboard` the cells' diagonals alternating as in
+    the slab's tetrahedra (MakeClothMesh), so the sheet has no preferred
+    shear or fold direction (`cloth.vbd.triangulation`, README)."""
     a = top_grid[:-1, :-1]
     b = top_grid[1:, :-1]
     c = top_grid[1:, 1:]
     d = top_grid[:-1, 1:]
     i, j = np.indices(a.shape)
-    mirrored = ((i + j) % 2 == 1).ravel()
+    mirrored = (((i + j) % 2 == 1) & checkerboard).ravel()
     a, b, c, d = (v.ravel() for v in (a, b, c, d))
     first = np.where(mirrored[:, None], np.stack([a, b, d], 1), np.stack([a, b, c], 1))
     second = np.where(mirrored[:, None], np.stack([b, c, d], 1), np.stack([a, c, d], 1))

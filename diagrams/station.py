@@ -418,7 +418,10 @@ def _add_vbd_cloth(builder, scene_graph, scenario, mesh, X_WC, X_WO):
         sheet_W=(
             X_WC.GetAsMatrix34() @ np.c_[mesh.vertices[top], np.ones(len(top))].T
         ).T,
-        triangles=TopTriangles(np.arange(len(top)).reshape(mesh.top_layer.shape)),
+        triangles=TopTriangles(
+            np.arange(len(top)).reshape(mesh.top_layer.shape),
+            checkerboard=vbd.triangulation == "checkerboard",
+        ),
         slab_top=top,
         slab_bottom=mesh.grid[:, :, 0].ravel(),
         thickness=cloth.thickness,

@@ -6,6 +6,7 @@ in test_station.py."""
 import numpy as np
 import pytest
 from fabric_imitation.diagrams.bench import DrapeReach, SideFlapReach
+from fabric_imitation.diagrams.cloth_mesh import TopTriangles
 from fabric_imitation.diagrams.demos import ScriptedDemoPlan
 from fabric_imitation.diagrams.simulation import OpenLoopRun, SimulationDivergedError
 from fabric_imitation.learning.errors import InputError
@@ -102,6 +103,7 @@ def test_vbd_cloth_drapes_over_the_box_and_fem_stands_out_further():
         ("cloth: {vbd: {stifness: 1.0}}", "stifness"),
         ("cloth: {vbd: {contact_stiffness: -1.0}}", "cloth.vbd.contact_stiffness"),
         ("cloth: {vbd: {table_contact: faces}}", "cloth.vbd.table_contact"),
+        ("cloth: {vbd: {triangulation: diagonal}}", "cloth.vbd.triangulation"),
     ],
 )
 def test_bad_engine_settings_are_one_line_errors(text, message):
@@ -148,3 +150,39 @@ def test_the_table_touching_fewer_cloth_elements_holds_the_cloth_as_before():
         }
         assert np.abs(resting[on_table, 2] - resting_all[on_table, 2]).max() < 1e-4
         assert resting[:, 2].min() > -1e-4  # nothing sinks into the table
+
+
+@pytest.mark.parametrize("checkerboard", [False, True])
+def test_the_sheet_is_two_counter_clockwise_triangles_per_cell(checkerboard):
+    grid = np.arange(4 * 3).reshape(4, 3)
+    xy = np.stack(np.indices(grid.shape), -1).reshape(-1, 2).astype(float)
+    tris = TopTriangles(grid, checkerboard=checkerboard)
+    a, b, c = (xy[tris[:, k]] for k in range(3))
+    cross = (b - a)[:, 0] * (c - a)[:, 1] - (b - a)[:, 1] * (c - a)[:, 0]
+    np.testing.assert_allclose(cross, 1.0)  # every one half a cell, CCW
+    # Each cell's diagonal: the edge its two triangles share.
+    cells = len(tris) // 2
+    diagonals = []
+    for first, second in zip(tris[:cells], tris[cells:]):
+        shared = sorted(set(first) & set(second))
+        (i0, j0), (i1, j1) = xy[shared[0]], xy[shared[1]]
+        diagonals.append((i1 - i0) * (j1 - j0) > 0)  # along +x +y
+    diagonals = np.array(diagonals).reshape(3, 2)
+    if checkerboard:
+        i, j = np.indices(diagonals.shape)
+        assert (diagonals == ((i + j) % 2 == 0)).all()
+    else:
+        assert diagonals.all()
+
+
+def test_the_vbd_engine_simulates_the_scenarios_triangulation():
+    text = (
+        "cloth: {resolution: [6, 6, 2], vbd: {resolution: [6, 6], "
+        "triangulation: checkerboard}}\n"
+    )
+    scenario = LoadScenario(scenario_name="box", scenario_text=text)
+    run = OpenLoopRun(scenario, actions=np.zeros((1, 6)), release_step=None)
+    run.advance_to(0.02)
+    engine = run.station.diagram.GetSubsystemByName("vbd_cloth")._engine
+    expected = TopTriangles(np.arange(36).reshape(6, 6), checkerboard=True)
+    np.testing.assert_array_equal(engine._model.tri_indices.numpy(), expected)
