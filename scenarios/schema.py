@@ -111,7 +111,10 @@ class VbdConfig:
     # 5.3 with "particles". But the cloth meets the table differently where
     # it folds onto it: with "particles" the scripted box cover's side flaps
     # stood 4.3 cm out from the box instead of 1.8 cm, and hang's imitation
-    # gave 39 of 50 against 43 of 50 (README, Performance).
+    # gave 39 of 50 against 43 of 50; with "edges" the flaps stayed at 1.8
+    # cm, but the scripted demos at five moved poses gave 23 of 25 against 24
+    # (the hang towel turned 44.75 degrees 4.0 mm above the table, the bar
+    # 5 mm; README, Performance).
     table_contact: str = "surface"
 
     def __post_init__(self):
