@@ -16,6 +16,7 @@ from fabric_imitation.learning.demo_learning import RewardConfig
 from fabric_imitation.learning.errors import InputError
 from fabric_imitation.learning.mpc import MpcConfig
 from fabric_imitation.learning.safety import SafetyConfig
+from fabric_imitation.systems.cloth_simulator import CONTACT_ELEMENTS
 from pydrake.multibody.plant import MultibodyPlantConfig
 from pydrake.systems.sensors import CameraConfig
 
@@ -135,8 +136,8 @@ class VbdConfig:
             self.triangulation,
         )
         _check(
-            self.table_contact in ("surface", "edges", "particles"),
-            "cloth.vbd.table_contact (surface, edges or particles)",
+            self.table_contact in CONTACT_ELEMENTS,
+            f"cloth.vbd.table_contact ({', '.join(CONTACT_ELEMENTS)})",
             self.table_contact,
         )
         for name in (
