@@ -34,7 +34,8 @@ class SafetyConfig:
     # 10 -> 7 (README). Rule breaks are always scored without it.
     hidden_corners_hang: bool = True
     # The controller's view only, as above: once the cloth lies on the
-    # object's top (a keypoint within DRAPE_MARGIN of the top face), judge
+    # object's top (a keypoint within DRAPE_MARGIN of the top face, or
+    # keypoints on opposite sides of the object, one below its top), judge
     # rule 2 also with each far corner hanging down the object's far side,
     # where a side draped over the object puts it out of the camera's sight
     # (SafetyContext.far_corners_may_drape). On for `hang` (scenarios.yaml);
@@ -243,15 +244,43 @@ def _dropped(p: torch.Tensor, fraction: float, ctx: SafetyContext) -> torch.Tens
 
 
 def _cloth_on_top(S: torch.Tensor, ctx: SafetyContext) -> torch.Tensor:
-    """(...) True where a keypoint of S (..., M, 3) lies on the object's top
-    (within DRAPE_MARGIN of it; the object frame)."""
+    """(...) True where the cloth of S (..., M, 3) lies over the object's top
+    (the object frame): a keypoint on the top (within DRAPE_MARGIN of it),
+    or the cloth across the object, keypoints on opposite sides of it and
+    one of them below its top (`_cloth_across`)."""
     size = torch.as_tensor(ctx.object_size, dtype=S.dtype)
     m = DRAPE_MARGIN
-    return (
+    on_top = (
         (S[..., 0].abs() < size[0] / 2 + m)
         & (S[..., 1].abs() < size[1] / 2 + m)
         & ((S[..., 2] - size[2]).abs() < m)
     ).any(-1)
+    return on_top | _cloth_across(S, size)
+
+
+def _cloth_across(S: torch.Tensor, size: torch.Tensor) -> torch.Tensor:
+    """(...) True where keypoints of S (..., M, 3) lie on opposite sides of
+    the object (beyond two opposite faces, within the other faces' extent
+    grown by DRAPE_MARGIN) and one of them lower than its top: the cloth
+    between them cannot go through the object, so it passes over the top.
+    On `hang` the side over the plate is out of f_R's sight, which puts its
+    far corner 1-3 cm from the gripper in front of the plate while the
+    other side's far corner shows behind it and no keypoint on the top: 6
+    of the 7 true rule breaks looked at (seeds 1 and 2, 2026-12-02). With
+    it, `evaluate --scenarios hang --trials 10`, seeds 0 / 1 / 2: true rule
+    breaks 1 / 4 / 3 -> 0 / 2 / 2, successes 8 / 8 / 9 both (README)."""
+    half, top = size[:2] / 2, size[2]
+    below = S[..., 2] < top
+    out = torch.zeros(S.shape[:-2], dtype=torch.bool)
+    for axis in (0, 1):
+        within = S[..., 1 - axis].abs() < half[1 - axis] + DRAPE_MARGIN
+        before = within & (S[..., axis] < -half[axis])
+        beyond = within & (S[..., axis] > half[axis])
+        out = out | (
+            ((before & below).any(-1) & beyond.any(-1))
+            | ((beyond & below).any(-1) & before.any(-1))
+        )
+    return out
 
 
 def _draped(g: torch.Tensor, ctx: SafetyContext) -> tuple[torch.Tensor, torch.Tensor]:

@@ -183,6 +183,54 @@ def test_a_side_draped_over_the_object_hides_its_far_corner():
     assert direction(truth, dc.replace(plate, far_corners_may_drape=True))
 
 
+def test_a_towel_across_the_plate_is_draped_over_it():
+    """A towel over a plate (hang, seed 1, trial 4, step 48): the right far
+    corner s4 shows behind the plate, below its top, with the grippers in
+    front, so the cloth crosses over the plate although no keypoint lies on
+    its top; f_R puts the left far corner s3 2.4 cm from its gripper, the
+    true one hangs behind the plate. Allowing for the side draped over the
+    plate refuses the move that breaks rule 2 on the true cloth (172
+    degrees); with s4 in front of the plate the hypothesis does not apply."""
+    import dataclasses as dc
+
+    import torch
+
+    estimate = np.array(
+        [
+            [-0.097, -0.145, 0.133],  # s1
+            [0.015, -0.098, 0.108],
+            [0.106, -0.144, 0.122],  # s2
+            [0.068, -0.035, 0.185],
+            [0.005, 0.018, 0.120],  # s4, behind the plate
+            [-0.016, -0.073, 0.124],
+            [-0.102, -0.121, 0.133],  # s3, as f_R sees it
+            [-0.111, -0.074, 0.134],
+        ]
+    )
+    truth = estimate.copy()
+    truth[6] = [-0.091, 0.006, 0.050]
+    truth[4] = [0.104, 0.024, 0.088]
+    A = torch.tensor([-0.0006, 0.0053, -0.0031, 0.0027, 0.0089, 0.0062])
+    cfg = SafetyConfig(tau_d_deg=150.0)  # hang's
+    plate = SafetyContext(
+        edge_length=L,
+        workspace_lower=CTX.workspace_lower,
+        workspace_upper=CTX.workspace_upper,
+        object_size=np.array([0.17, 0.01, 0.20]),
+    )
+    draped = dc.replace(plate, far_corners_may_drape=True)
+
+    def direction(S, ctx):
+        return bool(rule_violations(torch.as_tensor(S), A, cfg, ctx)["direction"])
+
+    assert direction(truth, plate)
+    assert not direction(estimate, plate)
+    assert direction(estimate, draped)
+    in_front = estimate.copy()
+    in_front[4] = [0.005, -0.018, 0.120]
+    assert not direction(in_front, draped)
+
+
 def test_a_hidden_corner_is_judged_with_a_margin():
     """A towel over a plate (hang, seed 0, trial 6, step 38): the right
     gripper moves 2.8 cm towards the plate while its far corner s4 hangs
