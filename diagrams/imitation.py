@@ -294,6 +294,8 @@ def MakeImitationDiagram(
             period=dt,
             offset=start,
             misread_grasp_error=scenario.safety.misread_grasp_error,
+            max_side_length=scenario.safety.misread_side_stretch
+            * scenario.cloth.size[1],
         ),
     )
     reward = builder.AddNamedSystem(

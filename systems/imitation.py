@@ -79,7 +79,9 @@ class KeypointEstimator(LeafSystem):
 
     The same measurement says how well f_R read the frame: where its own
     grasped corners lie more than ``misread_grasp_error`` metres (summed
-    over both) from the grippers, the frame counts as misread, and
+    over both) from the grippers, or a far corner s3, s4 lies more than
+    ``max_side_length`` from the gripper holding its side (further than
+    the side can reach), the frame counts as misread, and
     ``remembered_far_corners`` gives s3 and s4 of the last frame read
     within that (NaN while the frame is read right, or before any was);
     the keypoints themselves stay f_R's.
@@ -104,6 +106,7 @@ class KeypointEstimator(LeafSystem):
         period: float,
         offset: float = 0.0,
         misread_grasp_error: float = np.inf,
+        max_side_length: float = np.inf,
     ):
         super().__init__()
         self._priors = priors
@@ -113,6 +116,7 @@ class KeypointEstimator(LeafSystem):
         self._corners = [idx[k] for k in ("s1", "s2")]
         self._far = [idx[k] for k in ("s3", "s4")]
         self._misread_grasp_error = misread_grasp_error
+        self._max_side_length = max_side_length
         self._state = self.DeclareDiscreteState(3 * num_keypoints)
         # s3, s4 of the last frame read right (NaN before one), and the
         # output: those while this frame is misread, else NaN.
@@ -133,6 +137,10 @@ class KeypointEstimator(LeafSystem):
             error = float(np.linalg.norm(p_W[self._corners] - grippers, axis=1).sum())
             trusted = error <= self._misread_grasp_error
             p_W[self._corners] = grippers
+            # A far corner further from its gripper than the side is long
+            # is misread as well (f_R put it at the other far corner).
+            sides = np.linalg.norm(p_W[self._far] - grippers, axis=1)
+            trusted = trusted and bool((sides <= self._max_side_length).all())
         p_O = world_to_object(
             p_W, PlanarPose.FromRigidTransform(self._pose.Eval(context))
         )

@@ -461,6 +461,42 @@ def test_keypoint_estimator_remembers_far_corners_of_frames_read_right():
     assert np.isnan(update()).all()
 
 
+def test_keypoint_estimator_counts_a_side_longer_than_the_cloth_as_misread():
+    """f_R's grasped corners match the grippers, but it puts the left far
+    corner s3 by s4, 42 cm from the left gripper on a 30 cm side (box_big
+    turned 45 degrees): the frame counts as misread and the far corners of
+    the last frame read right are remembered."""
+    good = square(0.1, 0.2, 0.3, z=0.01)
+    swapped = good.copy()
+    swapped[6] = good[4] + [0.0, 0.02, 0.0]
+    priors = FixedPriors(good)
+    dut = KeypointEstimator(
+        priors=priors,
+        num_keypoints=8,
+        width=32,
+        height=24,
+        period=0.2,
+        max_side_length=1.05 * 0.3,
+    )
+    context = dut.CreateDefaultContext()
+    dut.GetInputPort("mask").FixValue(context, ImageGrey8U(32, 24))
+    dut.GetInputPort("depth").FixValue(context, ImageDepth32F(32, 24))
+    dut.GetInputPort("object_pose").FixValue(context, RigidTransform())
+    dut.GetInputPort("grippers").FixValue(context, good[[0, 2]].ravel())
+
+    def update():
+        state = dut.CreateDefaultContext().get_discrete_state()
+        dut.CalcForcedDiscreteVariableUpdate(context, state)
+        context.SetDiscreteState(state)
+        return dut.GetOutputPort("remembered_far_corners").Eval(context)
+
+    assert np.isnan(update()).all()
+    priors.points = swapped
+    np.testing.assert_allclose(update(), good[[6, 4]].ravel(), atol=1e-6)
+    with pytest.raises(ValueError, match="misread_side_stretch"):
+        SafetyConfig(misread_side_stretch=0.0)
+
+
 def test_each_ablation_changes_only_what_it_names():
     """No MPC applies the prior's first action; No Prior samples around zero
     instead of around the prior; No Cost takes an action that breaks a rule
