@@ -420,6 +420,25 @@ def test_keypoint_estimator_system_outputs_object_frame_keypoints():
     assert priors.seen == [((24, 32), (24, 32))]
 
 
+def _estimator_rig(dut, grippers):
+    """A 32 x 24 camera's inputs fixed on KeypointEstimator `dut`, the grippers
+    at `grippers` (2, 3); returns its context and `update()`, which runs one
+    update and gives ``remembered_far_corners``."""
+    context = dut.CreateDefaultContext()
+    dut.GetInputPort("mask").FixValue(context, ImageGrey8U(32, 24))
+    dut.GetInputPort("depth").FixValue(context, ImageDepth32F(32, 24))
+    dut.GetInputPort("object_pose").FixValue(context, RigidTransform())
+    dut.GetInputPort("grippers").FixValue(context, np.ravel(grippers))
+
+    def update():
+        state = dut.CreateDefaultContext().get_discrete_state()
+        dut.CalcForcedDiscreteVariableUpdate(context, state)
+        context.SetDiscreteState(state)
+        return dut.GetOutputPort("remembered_far_corners").Eval(context)
+
+    return context, update
+
+
 def test_keypoint_estimator_remembers_far_corners_of_frames_read_right():
     """Where f_R's own grasped corners lie far from the grippers (a misread
     frame), `remembered_far_corners` gives s3, s4 of the last frame whose
@@ -429,24 +448,9 @@ def test_keypoint_estimator_remembers_far_corners_of_frames_read_right():
     misread = np.roll(good, 2, axis=0)  # corners named a quarter turn off
     priors = FixedPriors(good)
     dut = KeypointEstimator(
-        priors=priors,
-        num_keypoints=8,
-        width=32,
-        height=24,
-        period=0.2,
-        misread_grasp_error=0.06,
+        priors=priors, num_keypoints=8, width=32, height=24, period=0.2, misread_grasp_error=0.06
     )
-    context = dut.CreateDefaultContext()
-    dut.GetInputPort("mask").FixValue(context, ImageGrey8U(32, 24))
-    dut.GetInputPort("depth").FixValue(context, ImageDepth32F(32, 24))
-    dut.GetInputPort("object_pose").FixValue(context, RigidTransform())
-    dut.GetInputPort("grippers").FixValue(context, good[[0, 2]].ravel())
-
-    def update():
-        state = dut.CreateDefaultContext().get_discrete_state()
-        dut.CalcForcedDiscreteVariableUpdate(context, state)
-        context.SetDiscreteState(state)
-        return dut.GetOutputPort("remembered_far_corners").Eval(context)
+    context, update = _estimator_rig(dut, good[[0, 2]])
 
     priors.points = misread
     assert np.isnan(update()).all()  # no frame read right yet
@@ -471,24 +475,9 @@ def test_keypoint_estimator_counts_a_side_longer_than_the_cloth_as_misread():
     swapped[6] = good[4] + [0.0, 0.02, 0.0]
     priors = FixedPriors(good)
     dut = KeypointEstimator(
-        priors=priors,
-        num_keypoints=8,
-        width=32,
-        height=24,
-        period=0.2,
-        max_side_length=1.05 * 0.3,
+        priors=priors, num_keypoints=8, width=32, height=24, period=0.2, max_side_length=1.05 * 0.3
     )
-    context = dut.CreateDefaultContext()
-    dut.GetInputPort("mask").FixValue(context, ImageGrey8U(32, 24))
-    dut.GetInputPort("depth").FixValue(context, ImageDepth32F(32, 24))
-    dut.GetInputPort("object_pose").FixValue(context, RigidTransform())
-    dut.GetInputPort("grippers").FixValue(context, good[[0, 2]].ravel())
-
-    def update():
-        state = dut.CreateDefaultContext().get_discrete_state()
-        dut.CalcForcedDiscreteVariableUpdate(context, state)
-        context.SetDiscreteState(state)
-        return dut.GetOutputPort("remembered_far_corners").Eval(context)
+    context, update = _estimator_rig(dut, good[[0, 2]])
 
     assert np.isnan(update()).all()
     priors.points = swapped

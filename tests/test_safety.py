@@ -132,6 +132,15 @@ def test_bad_thresholds_are_rejected():
         SafetyConfig(tau_c=1.2, tau_f=1.0)
 
 
+# The hang scene's 17 x 1 x 20 cm plate.
+PLATE = SafetyContext(
+    edge_length=L,
+    workspace_lower=CTX.workspace_lower,
+    workspace_upper=CTX.workspace_upper,
+    object_size=np.array([0.17, 0.01, 0.20]),
+)
+
+
 def test_a_side_draped_over_the_object_hides_its_far_corner():
     """A towel over a plate (hang, seed 0, trial 0, step 36): f_R puts the
     left far corner s3 by the grasped edge, the true one hangs down the
@@ -157,12 +166,7 @@ def test_a_side_draped_over_the_object_hides_its_far_corner():
     truth[6] = [-0.107, 0.029, 0.042]
     truth[4] = [0.058, 0.021, 0.088]
     A = [-0.011, 0.0154, -0.024, 0.0071, 0.0067, -0.0234]
-    plate = SafetyContext(
-        edge_length=L,
-        workspace_lower=CTX.workspace_lower,
-        workspace_upper=CTX.workspace_upper,
-        object_size=np.array([0.17, 0.01, 0.20]),
-    )
+    plate = PLATE
     draped = dc.replace(plate, far_corners_may_drape=True)
 
     def direction(S, ctx):
@@ -212,12 +216,7 @@ def test_a_towel_across_the_plate_is_draped_over_it():
     truth[4] = [0.104, 0.024, 0.088]
     A = torch.tensor([-0.0006, 0.0053, -0.0031, 0.0027, 0.0089, 0.0062])
     cfg = SafetyConfig(tau_d_deg=150.0)  # hang's
-    plate = SafetyContext(
-        edge_length=L,
-        workspace_lower=CTX.workspace_lower,
-        workspace_upper=CTX.workspace_upper,
-        object_size=np.array([0.17, 0.01, 0.20]),
-    )
+    plate = PLATE
     draped = dc.replace(plate, far_corners_may_drape=True)
 
     def direction(S, ctx):
@@ -259,12 +258,7 @@ def test_a_hidden_corner_is_judged_with_a_margin():
     truth[4] = [0.061, 0.014, 0.095]
     truth[6] = [-0.118, 0.032, 0.053]
     A = torch.tensor([-0.0266, 0.0238, -0.013, -0.0026, 0.0277, -0.0036])
-    plate = SafetyContext(
-        edge_length=L,
-        workspace_lower=CTX.workspace_lower,
-        workspace_upper=CTX.workspace_upper,
-        object_size=np.array([0.17, 0.01, 0.20]),
-    )
+    plate = PLATE
     hidden = dc.replace(plate, far_corners_may_hang=True, far_corners_may_drape=True)
 
     def direction(S, ctx, margin):
