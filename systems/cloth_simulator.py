@@ -13,6 +13,14 @@ Coupling is one-way: the grippers (read from the plant) move the grasped
 corner patches kinematically and the table and the task object push the
 cloth, but the cloth exerts no force on anything in the plant.
 
+Bending (`VbdSettings.bending_model`): "quadratic", the isometric bending
+energy of Bergou et al. 2006 ("A quadratic bending model for inextensible
+surfaces"), computed here as an external force once per substep (its
+Hessian is constant; stable for the stiffness a cloth has, checked when the
+system is built), or "dihedral", newton's own dihedral-angle bending inside
+the VBD iterations (about twice the cost of the whole step: it evaluates the
+angle's derivatives for all four stencil vertices to use one).
+
 The outputs give the cloth as the FEM slab's vertices (top layer = the
 sheet, bottom layer = the sheet moved one thickness against its normals), so
 everything that reads `cloth.positions` / `cloth.keypoints` works with
@@ -32,6 +40,7 @@ import logging
 import os
 
 import numpy as np
+from fabric_imitation.learning.errors import InputError
 from pydrake.common.value import AbstractValue
 from pydrake.geometry import GeometryConfigurationVector, GeometryId
 from pydrake.math import RigidTransform
@@ -75,6 +84,13 @@ CONTACT_ELEMENTS = {
 }
 
 
+BENDING_MODELS = ("quadratic", "dihedral")
+# Bending damping of each model where the scenario leaves it out: newton's
+# dihedral default of this project, and none for the quadratic bending,
+# whose explicit damping would need a much smaller substep at that value.
+DEFAULT_BENDING_DAMPING = {"dihedral": 1.0e-3, "quadratic": 0.0}
+
+
 @dc.dataclass(frozen=True)
 class VbdSettings:
     """Solver and material settings in SI units (scenarios/schema.py's
@@ -85,15 +101,27 @@ class VbdSettings:
     stretch_stiffness: float  # N/m
     area_stiffness: float  # N/m
     stretch_damping: float  # s
-    bending_stiffness: float  # N m (per radian squared)
-    bending_damping: float  # s
+    bending_stiffness: float  # N m (per radian squared, per metre of edge)
+    bending_damping: float | None  # N m s (per radian, per metre of edge)
     areal_density: float  # kg/m^2
     contact_stiffness: float  # N/m
     contact_damping: float  # N s/m
     contact_distance: float  # m
     surface_contact: bool
     friction: float
+    bending_model: str = "quadratic"
     runaway_distance: float = 5.0  # m from the world origin
+
+    def __post_init__(self):
+        if self.bending_model not in BENDING_MODELS:
+            raise ValueError(
+                f"unknown bending model {self.bending_model!r} (one of: "
+                f"{', '.join(BENDING_MODELS)})"
+            )
+        if self.bending_damping is None:
+            object.__setattr__(
+                self, "bending_damping", DEFAULT_BENDING_DAMPING[self.bending_model]
+            )
 
 
 def _init_warp():
@@ -132,7 +160,86 @@ def _init_warp():
     return wp
 
 
+def BendingStencils(triangles: np.ndarray) -> np.ndarray:
+    """(E, 4) particle indices (o0, o1, a, b) of every interior edge a-b of
+    the triangle mesh, o0 and o1 the vertices opposite it in its two
+    triangles."""
+    opposite = {}
+    stencils = []
+    for tri in np.asarray(triangles):
+        for k in range(3):
+            a, b, o = int(tri[k]), int(tri[(k + 1) % 3]), int(tri[(k + 2) % 3])
+            key = (min(a, b), max(a, b))
+            if key in opposite:
+                stencils.append((opposite[key], o, *key))
+            else:
+                opposite[key] = o
+    return np.array(stencils, dtype=np.int32).reshape(-1, 4)
+
+
+def QuadraticBendingWeights(
+    rest_positions: np.ndarray, stencils: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """Weights w (E, 4) and rest lengths (E,) of the quadratic bending
+    energy E = 1/2 k L |sum_i w_i x_i|^2 of each stencil (o0, o1, a, b) of a
+    flat rest mesh: w is the four rest points' affine dependency (sum w = 0,
+    sum w x = 0, so rigid motions and in-plane deformations of the rest shape
+    cost nothing) scaled so that |sum w x| = 2 sin(theta / 2) when the
+    hinge bends by theta. For small angles the energy is then newton's
+    dihedral 1/2 k L theta^2."""
+    x = np.asarray(rest_positions, float)
+    o0, o1, a, b = (x[stencils[:, k]] for k in range(4))
+    edge = b - a
+    length = np.linalg.norm(edge, axis=1)
+    along = edge / length[:, None]
+    a0 = np.einsum("ij,ij->i", o0 - a, along)
+    a1 = np.einsum("ij,ij->i", o1 - a, along)
+    w0 = 1.0 / np.linalg.norm(o0 - a - a0[:, None] * along, axis=1)
+    w1 = 1.0 / np.linalg.norm(o1 - a - a1[:, None] * along, axis=1)
+    wb = -(a0 * w0 + a1 * w1) / length
+    wa = -(w0 + w1 + wb)
+    return np.stack([w0, w1, wa, wb], axis=1), length
+
+
+def ExplicitBendingStability(
+    stencils: np.ndarray,
+    weights: np.ndarray,
+    lengths: np.ndarray,
+    masses: np.ndarray,
+    *,
+    stiffness: float,
+    damping: float,
+    substep: float,
+) -> float:
+    """How close the explicit quadratic bending is to its stability limit at
+    this substep [s]: h (sqrt(lambda_K) + lambda_C), with lambda the
+    Gershgorin bounds of M^-1 K and M^-1 C over the free particles (the
+    symplectic Euler step of an undamped oscillator is stable below
+    h sqrt(lambda) = 2, an explicit damper below h lambda = 2); <= 1 keeps a
+    margin of two."""
+    row = np.zeros(len(masses))
+    spread = np.abs(weights).sum(axis=1) * lengths
+    for k in range(4):
+        np.add.at(row, stencils[:, k], np.abs(weights[:, k]) * spread)
+    free = masses > 0
+    bound = float((row[free] / masses[free]).max(initial=0.0))
+    return substep * (np.sqrt(stiffness * bound) + damping * bound)
+
+
+def _lumped_masses(positions, triangles, areal_density) -> np.ndarray:
+    p = np.asarray(positions, float)
+    t = np.asarray(triangles)
+    area = 0.5 * np.linalg.norm(
+        np.cross(p[t[:, 1]] - p[t[:, 0]], p[t[:, 2]] - p[t[:, 0]]), axis=1
+    )
+    m = np.zeros(len(p))
+    for k in range(3):
+        np.add.at(m, t[:, k], areal_density * area / 3)
+    return m
+
+
 _HOLD_KERNEL = None
+_BEND_KERNEL = None
 
 
 def _hold_kernel(wp):
@@ -142,6 +249,37 @@ def _hold_kernel(wp):
     if _HOLD_KERNEL is None:
         _HOLD_KERNEL = _define_hold_kernel(wp)
     return _HOLD_KERNEL
+
+
+def _bend_kernel(wp):
+    """The kernel that adds the quadratic bending forces (defined once per
+    process, after warp is imported)."""
+    global _BEND_KERNEL
+    if _BEND_KERNEL is None:
+
+        @wp.kernel
+        def quadratic_bending(
+            stencils: wp.array2d[wp.int32],
+            weights: wp.array2d[float],
+            stiffness: wp.array[float],
+            damping: wp.array[float],
+            q: wp.array[wp.vec3],
+            qd: wp.array[wp.vec3],
+            f: wp.array[wp.vec3],
+        ):
+            e = wp.tid()
+            bend = wp.vec3(0.0)
+            rate = wp.vec3(0.0)
+            for k in range(4):
+                p = stencils[e, k]
+                bend += weights[e, k] * q[p]
+                rate += weights[e, k] * qd[p]
+            g = -(stiffness[e] * bend + damping[e] * rate)
+            for k in range(4):
+                wp.atomic_add(f, stencils[e, k], weights[e, k] * g)
+
+        _BEND_KERNEL = quadratic_bending
+    return _BEND_KERNEL
 
 
 def _define_hold_kernel(wp):
@@ -221,6 +359,9 @@ class ClothSimulator(LeafSystem):
         self._kp_sheet = np.array([sheet_of_slab[v] for v in self._kp])
         self._grasped = {s: np.asarray(grasped[s], dtype=np.int32) for s in SIDES}
         self._dt = time_step
+        self._bending = None
+        if settings.bending_model == "quadratic":
+            self._bending = self._quadratic_bending(settings, time_step)
         self._settings = settings
         self._colliders = list(colliders)
         self._geometry_id = geometry_id
@@ -254,6 +395,40 @@ class ClothSimulator(LeafSystem):
             lambda: AbstractValue.Make(GeometryConfigurationVector()),
             self._calc_configuration,
             {self.discrete_state_ticket(self._cloth_state)},
+        )
+
+    def _quadratic_bending(self, settings: VbdSettings, time_step: float):
+        """Stencils, weights and per-stencil stiffness and damping [N/m, N s/m]
+        of the quadratic bending; a bending too stiff for the explicit step
+        is an InputError."""
+        stencils = BendingStencils(self._tris)
+        weights, lengths = QuadraticBendingWeights(self._sheet0, stencils)
+        masses = _lumped_masses(self._sheet0, self._tris, settings.areal_density)
+        for s in SIDES:
+            masses[self._grasped[s]] = 0.0  # held: moved by the grippers
+        h = time_step / settings.substeps
+        margin = ExplicitBendingStability(
+            stencils,
+            weights,
+            lengths,
+            masses,
+            stiffness=settings.bending_stiffness,
+            damping=settings.bending_damping,
+            substep=h,
+        )
+        if margin > 1.0:
+            raise InputError(
+                f"cloth.vbd bending_stiffness {settings.bending_stiffness:g} / "
+                f"bending_damping {settings.bending_damping:g} are too stiff for "
+                f"the explicit quadratic bending at {1e3 * h:g} ms substeps "
+                f"({margin:.2f} of the stable limit, 1 allowed): use more "
+                "cloth.vbd.substeps or bending_model: dihedral"
+            )
+        return (
+            stencils,
+            weights,
+            settings.bending_stiffness * lengths,
+            settings.bending_damping * lengths,
         )
 
     # ----- outputs -------------------------------------------------------
@@ -333,6 +508,7 @@ class ClothSimulator(LeafSystem):
             colliders=self._colliders,
             settings=self._settings,
             time_step=self._dt,
+            bending=self._bending,
         )
         return self._engine
 
@@ -367,6 +543,7 @@ class _VbdEngine:
         colliders,
         settings: VbdSettings,
         time_step,
+        bending=None,
     ):
         wp = _init_warp()
         import newton
@@ -406,8 +583,10 @@ class _VbdEngine:
             tri_ke=settings.stretch_stiffness,
             tri_ka=settings.area_stiffness,
             tri_kd=settings.stretch_damping,
-            edge_ke=settings.bending_stiffness,
-            edge_kd=settings.bending_damping,
+            # newton's dihedral bending, or none where this class adds the
+            # quadratic bending (`bending`) as an external force.
+            edge_ke=settings.bending_stiffness if bending is None else 0.0,
+            edge_kd=settings.bending_damping if bending is None else 0.0,
             particle_radius=settings.contact_distance,
         )
         builder.color(include_bending=True)
@@ -447,6 +626,15 @@ class _VbdEngine:
         self._offsets.numpy()[:] = np.asarray(sheet_W)[idx] - g0[side]
         self._n = len(sheet_W)
         self._hold = _hold_kernel(wp)
+        self._bend = None
+        if bending is not None:
+            stencils, weights, stiffness, damping = bending
+            self._bend = [
+                wp.array(stencils, dtype=wp.int32, device="cpu"),
+                wp.array(weights, dtype=float, device="cpu"),
+                wp.array(stiffness, dtype=float, device="cpu"),
+                wp.array(damping, dtype=float, device="cpu"),
+            ]
         self._graph = None
         self._held = None
 
@@ -493,6 +681,14 @@ class _VbdEngine:
                 device="cpu",
             )
             s0.clear_forces()
+            if self._bend is not None:
+                wp.launch(
+                    _bend_kernel(wp),
+                    dim=self._bend[0].shape[0],
+                    inputs=[*self._bend, s0.particle_q, s0.particle_qd],
+                    outputs=[s0.particle_f],
+                    device="cpu",
+                )
             self._pipeline.collide(s0, self._contacts)
             self._solver.step(s0, s1, self._control, self._contacts, h)
 
