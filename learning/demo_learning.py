@@ -56,6 +56,15 @@ class RewardConfig:
     # corners, sets 9 px and 0.08 m (scenarios.yaml).
     demo_grasp_max_spread_px: float = math.inf
     demo_grasp_max_jump: float = math.inf
+    # ... and dropped where it lies more than this [m] from where the
+    # corner's last two kept frames, moving on at their velocity, put it
+    # (the hands move smoothly). Where the towel is lowered in front of the
+    # plate, seen from above its top edge lies on the plate, and f_R can put
+    # both grasped corners there, sure of them and consistently over the
+    # last frames, so that the neighbour test keeps them (a hang demo
+    # recorded on 2026-12-02: 14.6 cm off in the last two frames; with
+    # 0.06 m: 5.7 cm, held at the last frame read right). .inf: off.
+    demo_grasp_max_deviation: float = math.inf
     # f_A training: steps, batch, learning rate, source-state jitter.
     registration_steps: int = 1500
     registration_batch: int = 256
@@ -70,7 +79,11 @@ class RewardConfig:
                 raise ValueError(f"reward.{name} must be non-negative")
         if not 0 < self.tau_i <= 1:
             raise ValueError(f"reward.tau_i must be in (0, 1], got {self.tau_i}")
-        for name in ("demo_grasp_max_spread_px", "demo_grasp_max_jump"):
+        for name in (
+            "demo_grasp_max_spread_px",
+            "demo_grasp_max_jump",
+            "demo_grasp_max_deviation",
+        ):
             if not getattr(self, name) > 0:
                 raise ValueError(
                     f"reward.{name} must be positive, got {getattr(self, name)}"
@@ -83,12 +96,15 @@ def track_grasped_corners(
     """The demo states (T, M, 3) with the grasped corners s1, s2 tracked
     through the frames (see RewardConfig.demo_grasp_max_spread_px).
 
-    A corner's f_R estimate is kept where f_R is sure of it and it agrees
-    with its neighbours. The two corners are held by two hands, so their
-    offset changes slowly: where one corner is dropped and the other kept, it
-    is placed at the other plus their offset (interpolated between the frames
-    where both were kept); where both are dropped, each is interpolated
-    between its frames (held before the first and after the last).
+    A corner's f_R estimate is kept where f_R is sure of it, it agrees with
+    its neighbours and, going forward through the frames, it lies near where
+    the corner's last two kept estimates, moving on at their velocity, put
+    it (`demo_grasp_max_deviation`). The two corners are held by two hands,
+    so their offset changes slowly: where one corner is dropped and the
+    other kept, it is placed at the other plus their offset (interpolated
+    between the frames where both were kept); where both are dropped, each
+    is interpolated between its frames (held before the first and after the
+    last).
     `spread` (T, M): f_R's spread [px]."""
     states = np.array(states, dtype=float, copy=True)
     T, M, _ = states.shape
@@ -105,6 +121,16 @@ def track_grasped_corners(
             if len(near) >= 2:
                 median = np.median(p[near], axis=0)
                 ok[t] = np.linalg.norm(p[t] - median) <= config.demo_grasp_max_jump
+        if math.isfinite(config.demo_grasp_max_deviation):
+            history = []  # frames kept so far
+            for t in np.flatnonzero(ok):
+                if len(history) >= 2:
+                    a, b = history[-2:]
+                    ahead = p[b] + (p[b] - p[a]) * (t - b) / (b - a)
+                    if np.linalg.norm(p[t] - ahead) > config.demo_grasp_max_deviation:
+                        ok[t] = False
+                        continue
+                history.append(t)
         kept.append(ok)
     both = kept[0] & kept[1]
     if both.all() or not both.any():

@@ -11,6 +11,10 @@ from fabric_imitation.diagrams.demos import ScriptedDemoPlan
 from fabric_imitation.diagrams.simulation import OpenLoopRun, SimulationDivergedError
 from fabric_imitation.learning.errors import InputError
 from fabric_imitation.scenarios.loader import LoadScenario
+from fabric_imitation.systems.cloth_simulator import (
+    BendingStencils,
+    QuadraticBendingWeights,
+)
 
 from tests.conftest import SMALL_CLOTH
 from tests.test_station import Rig
@@ -104,6 +108,8 @@ def test_vbd_cloth_drapes_over_the_box_and_fem_stands_out_further():
         ("cloth: {vbd: {contact_stiffness: -1.0}}", "cloth.vbd.contact_stiffness"),
         ("cloth: {vbd: {table_contact: faces}}", "cloth.vbd.table_contact"),
         ("cloth: {vbd: {triangulation: diagonal}}", "cloth.vbd.triangulation"),
+        ("cloth: {vbd: {bending_model: cubic}}", "cloth.vbd.bending_model"),
+        ("cloth: {vbd: {bending_damping: -1.0}}", "cloth.vbd.bending_damping"),
     ],
 )
 def test_bad_engine_settings_are_one_line_errors(text, message):
@@ -186,3 +192,119 @@ def test_the_vbd_engine_simulates_the_scenarios_triangulation():
     engine = run.station.diagram.GetSubsystemByName("vbd_cloth")._engine
     expected = TopTriangles(np.arange(36).reshape(6, 6), checkerboard=True)
     np.testing.assert_array_equal(engine._model.tri_indices.numpy(), expected)
+
+
+def _sheet(nx: int, ny: int, spacing: float = 0.02):
+    grid = np.arange(nx * ny).reshape(nx, ny)
+    i, j = np.indices(grid.shape)
+    rest = np.c_[spacing * i.ravel(), spacing * j.ravel(), np.zeros(nx * ny)]
+    return TopTriangles(grid, checkerboard=False), rest
+
+
+def test_quadratic_bending_measures_the_hinge_angle_and_nothing_else():
+    """The quadratic bending's bend vector sum_i w_i x_i is zero for the rest
+    sheet moved rigidly or stretched in its plane, and 2 sin(theta / 2) on
+    every hinge of a fold by theta (zero on the others)."""
+    tris, rest = _sheet(5, 4)
+    stencils = BendingStencils(tris)
+    cells = 4 * 3
+    # Interior edges: every cell's diagonal plus the grid lines between cells.
+    assert len(stencils) == cells + 4 * 2 + 3 * 3
+    weights, lengths = QuadraticBendingWeights(rest, stencils)
+    np.testing.assert_allclose(lengths[lengths < 0.021], 0.02)
+
+    def bend(x):
+        return np.linalg.norm(np.einsum("ek,ekd->ed", weights, x[stencils]), axis=1)
+
+    c, s = np.cos(0.7), np.sin(0.7)
+    rotation = np.array([[c, 0, s], [0, 1, 0], [-s, 0, c]]) @ np.array(
+        [[c, -s, 0], [s, c, 0], [0, 0, 1]]
+    )
+    assert bend(rest @ rotation.T + [0.1, -0.2, 0.3]).max() < 1e-12
+    assert bend(rest * [1.05, 0.97, 1.0]).max() < 1e-12
+    # Fold the sheet by 1 rad along the grid line x = 0.04 (rows 0-2 stay).
+    theta = 1.0
+    folded = rest.copy()
+    moved = rest[:, 0] > 0.04 + 1e-9
+    dx = rest[moved, 0] - 0.04
+    folded[moved, 0] = 0.04 + dx * np.cos(theta)
+    folded[moved, 2] = dx * np.sin(theta)
+    on_fold = np.all(np.isclose(rest[stencils[:, 2:], 0], 0.04), axis=1)
+    assert on_fold.sum() == 3
+    b = bend(folded)
+    np.testing.assert_allclose(b[on_fold], 2 * np.sin(theta / 2))
+    assert b[~on_fold].max() < 1e-12
+
+
+def test_the_bending_kernel_gives_the_energys_gradient():
+    """Forces of the engine's quadratic bending kernel at a random bent shape
+    against finite differences of E = sum 1/2 k L |sum_i w_i x_i|^2."""
+    import warp as wp
+    from fabric_imitation.systems.cloth_simulator import _bend_kernel, _init_warp
+
+    _init_warp()
+    tris, rest = _sheet(4, 4)
+    stencils = BendingStencils(tris)
+    weights, lengths = QuadraticBendingWeights(rest, stencils)
+    k = 1.0e-5 * lengths
+    x = rest + np.random.default_rng(0).normal(scale=0.004, size=rest.shape)
+
+    def energy(y):
+        d = np.einsum("ek,ekd->ed", weights, y[stencils])
+        return 0.5 * np.sum(k * np.sum(d * d, axis=1))
+
+    f = wp.zeros(len(x), dtype=wp.vec3, device="cpu")
+    wp.launch(
+        _bend_kernel(wp),
+        dim=len(stencils),
+        inputs=[
+            wp.array(stencils, dtype=wp.int32, device="cpu"),
+            wp.array(weights, dtype=float, device="cpu"),
+            wp.array(k, dtype=float, device="cpu"),
+            wp.zeros(len(k), dtype=float, device="cpu"),
+            wp.array(x, dtype=wp.vec3, device="cpu"),
+            wp.zeros(len(x), dtype=wp.vec3, device="cpu"),
+        ],
+        outputs=[f],
+        device="cpu",
+    )
+    numeric = np.zeros_like(x)
+    for i in range(len(x)):
+        for a in range(3):
+            e = np.zeros_like(x)
+            e[i, a] = 1e-6
+            numeric[i, a] = -(energy(x + e) - energy(x - e)) / 2e-6
+    assert np.abs(numeric).max() > 1e-6  # the shape is bent
+    np.testing.assert_allclose(f.numpy(), numeric, rtol=1e-3, atol=1e-9)
+
+
+def test_both_bending_models_hang_the_lifted_cloth_alike():
+    """Lifted by two corners, the cloth hangs the same (within 2 mm) with
+    the quadratic and with newton's dihedral bending."""
+    hanging = {}
+    for model in ("quadratic", "dihedral"):
+        scenario = LoadScenario(
+            scenario_name="prior",
+            scenario_text="cloth: {resolution: [6, 6, 2], vbd: {resolution: "
+            f"[6, 6], bending_model: {model}}}}}\n",
+        )
+        run = OpenLoopRun(
+            scenario,
+            actions=np.tile([0, 0, 0.03, 0, 0, 0.03], (4, 1)),
+            release_step=None,
+        )
+        run.advance_to(1.2)
+        hanging[model] = run.capture_positions()
+    assert hanging["quadratic"][:, 2].max() > 0.1
+    assert np.abs(hanging["quadratic"] - hanging["dihedral"]).max() < 0.002
+
+
+def test_quadratic_bending_too_stiff_for_its_explicit_step_is_a_one_line_error():
+    scenario = LoadScenario(
+        scenario_name="box",
+        scenario_text="cloth: {resolution: [6, 6, 2], vbd: {resolution: [6, 6], "
+        "bending_stiffness: 0.1}}\n",
+    )
+    with pytest.raises(InputError, match="too stiff for the explicit") as e:
+        OpenLoopRun(scenario, actions=np.zeros((1, 6)), release_step=None)
+    assert "\n" not in str(e.value)

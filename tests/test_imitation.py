@@ -1,5 +1,6 @@
 """Demo learning, reward, termination, MPC and the imitation systems."""
 
+import dataclasses as dc
 import math
 
 import numpy as np
@@ -199,6 +200,38 @@ def test_grasped_corners_are_tracked_through_misread_demo_frames():
     )
     with pytest.raises(ValueError, match="reward.demo_grasp_max_jump"):
         RewardConfig(demo_grasp_max_jump=0.0)
+
+
+def test_grasped_corners_read_off_the_hands_path_in_the_last_frames_are_dropped():
+    """The hands lower the grasped edge 3 cm a frame; in the last three
+    frames f_R reads both corners 6, 12 and 12 cm back and up (on the
+    plate's edge), sure of them (3 px) and agreeing with each other, so the
+    neighbour test keeps them. The deviation test drops them: the corners
+    are held where they were last read right, within the 3 cm the hands
+    moved on."""
+    T = 10
+    truth = np.stack([square(0.0, 0.0, 0.3, z=0.3 - 0.03 * t) for t in range(T)])
+    est = truth.copy()
+    for t, off in zip(range(T - 3, T), (0.06, 0.12, 0.12), strict=True):
+        est[t, [0, 2]] += [0.0, off, off]
+    spread = np.full((T, 8), 3.0)
+    neighbours = RewardConfig(demo_grasp_max_spread_px=9.0, demo_grasp_max_jump=0.08)
+    kept = track_grasped_corners(est, spread, neighbours)
+    assert np.linalg.norm(kept[-1, [0, 2]] - truth[-1, [0, 2]], axis=-1).min() > 0.15
+    smooth = dc.replace(neighbours, demo_grasp_max_deviation=0.06)
+    tracked = track_grasped_corners(est, spread, smooth)
+    np.testing.assert_allclose(tracked[: T - 3], truth[: T - 3], atol=1e-9)
+    np.testing.assert_allclose(tracked[T - 3 :, [0, 2]], truth[[T - 4] * 3][:, [0, 2]])
+    # On the true path (turning a corner at 3 cm a frame) nothing is dropped.
+    turn = np.stack(
+        [
+            square(0.0, -0.03 * min(t, 5), 0.3, z=0.3 - 0.03 * max(t - 5, 0))
+            for t in range(T)
+        ]
+    )
+    np.testing.assert_array_equal(track_grasped_corners(turn, spread, smooth), turn)
+    with pytest.raises(ValueError, match="reward.demo_grasp_max_deviation"):
+        RewardConfig(demo_grasp_max_deviation=-1.0)
 
 
 def test_keypoint_net_spread_is_small_where_the_heatmap_is_sharp():
@@ -448,7 +481,12 @@ def test_keypoint_estimator_remembers_far_corners_of_frames_read_right():
     misread = np.roll(good, 2, axis=0)  # corners named a quarter turn off
     priors = FixedPriors(good)
     dut = KeypointEstimator(
-        priors=priors, num_keypoints=8, width=32, height=24, period=0.2, misread_grasp_error=0.06
+        priors=priors,
+        num_keypoints=8,
+        width=32,
+        height=24,
+        period=0.2,
+        misread_grasp_error=0.06,
     )
     context, update = _estimator_rig(dut, good[[0, 2]])
 
@@ -475,7 +513,12 @@ def test_keypoint_estimator_counts_a_side_longer_than_the_cloth_as_misread():
     swapped[6] = good[4] + [0.0, 0.02, 0.0]
     priors = FixedPriors(good)
     dut = KeypointEstimator(
-        priors=priors, num_keypoints=8, width=32, height=24, period=0.2, max_side_length=1.05 * 0.3
+        priors=priors,
+        num_keypoints=8,
+        width=32,
+        height=24,
+        period=0.2,
+        max_side_length=1.05 * 0.3,
     )
     context, update = _estimator_rig(dut, good[[0, 2]])
 
