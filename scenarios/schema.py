@@ -106,6 +106,17 @@ class VbdConfig:
     # built: a one-line error beyond); the quadratic cloth is damped by the
     # implicit VBD step, the membrane and contact friction.
     bending_damping: float | None = None
+    # The held corner patches (cloth.grasp_size square at each grasped
+    # corner, kinematic while held) turn about z with the grasped edge, the
+    # line from the left to the right gripper, as a pinch at each corner
+    # lets the cloth pivot; false keeps each held particle at its rest
+    # offset from its gripper whatever the edge does. With the patches
+    # fixed, a grasped edge turned 37-45 degrees (the object turned, the
+    # cloth not) shears the cloth next to it: the scripted hang's towel
+    # ended 0.7-2.2 cm over the table at such poses against about 4 cm with
+    # the plate square; turning with the edge, 3.3-4.8 cm at all 20 poses of
+    # seeds 0 and 1 (README, Performance).
+    grasp_turns: bool = True
     # Mass per area [kg/m^2] (a light cotton towel).
     areal_density: float = 0.2
     # Penalty contact against the table and the task object: stiffness

@@ -110,6 +110,7 @@ class VbdSettings:
     surface_contact: bool
     friction: float
     bending_model: str = "quadratic"
+    grasp_turns: bool = True  # held patches turn about z with the grasped edge
     runaway_distance: float = 5.0  # m from the world origin
 
     def __post_init__(self):
@@ -284,6 +285,23 @@ def _bend_kernel(wp):
 
 def _define_hold_kernel(wp):
 
+    @wp.func
+    def turned(offset: wp.vec3, rest: wp.vec3, edge: wp.vec3):
+        """`offset` turned about z by the angle from `rest` to `edge` (seen
+        from above)."""
+        a = wp.atan2(
+            rest[0] * edge[1] - rest[1] * edge[0], rest[0] * edge[0] + rest[1] * edge[1]
+        )
+        c = wp.cos(a)
+        s = wp.sin(a)
+        return wp.vec3(
+            c * offset[0] - s * offset[1], s * offset[0] + c * offset[1], offset[2]
+        )
+
+    @wp.func
+    def grasped_edge(start: wp.array[wp.vec3], end: wp.array[wp.vec3], alpha: float):
+        return start[1] - start[0] + alpha * (end[1] - end[0] - start[1] + start[0])
+
     @wp.kernel
     def hold_grasped(
         indices: wp.array[wp.int32],
@@ -291,9 +309,12 @@ def _define_hold_kernel(wp):
         offsets: wp.array[wp.vec3],
         start: wp.array[wp.vec3],
         end: wp.array[wp.vec3],
+        rest_edge: wp.array[wp.vec3],
         holding: wp.array[wp.int32],
         alpha: float,
+        step: float,
         inv_dt: float,
+        turn: int,
         q: wp.array[wp.vec3],
         qd: wp.array[wp.vec3],
     ):
@@ -302,8 +323,18 @@ def _define_hold_kernel(wp):
             return
         s = side[i]
         p = indices[i]
-        q[p] = start[s] + alpha * (end[s] - start[s]) + offsets[i]
-        qd[p] = (end[s] - start[s]) * inv_dt
+        offset = offsets[i]
+        velocity = (end[s] - start[s]) * inv_dt
+        if turn != 0:
+            # The patch turns about z with the grasped edge (left to right
+            # gripper) from its direction at rest.
+            offset = turned(offsets[i], rest_edge[0], grasped_edge(start, end, alpha))
+            before = turned(
+                offsets[i], rest_edge[0], grasped_edge(start, end, alpha - step)
+            )
+            velocity = velocity + (offset - before) * (inv_dt / step)
+        q[p] = start[s] + alpha * (end[s] - start[s]) + offset
+        qd[p] = velocity
 
     return hold_grasped
 
@@ -624,6 +655,7 @@ class _VbdEngine:
         # Each held particle keeps its rest offset from its gripper.
         g0 = np.stack([grippers_W0[s] for s in SIDES])
         self._offsets.numpy()[:] = np.asarray(sheet_W)[idx] - g0[side]
+        self._rest_edge = wp.array([g0[1] - g0[0]], dtype=wp.vec3, device="cpu")
         self._n = len(sheet_W)
         self._hold = _hold_kernel(wp)
         self._bend = None
@@ -672,9 +704,12 @@ class _VbdEngine:
                     self._offsets,
                     self._start,
                     self._end,
+                    self._rest_edge,
                     self._holding,
                     float(k + 1) / n,
+                    1.0 / n,
                     1.0 / self._dt,
+                    int(self._s.grasp_turns),
                     s0.particle_q,
                     s0.particle_qd,
                 ],

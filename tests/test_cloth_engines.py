@@ -308,3 +308,37 @@ def test_quadratic_bending_too_stiff_for_its_explicit_step_is_a_one_line_error()
     with pytest.raises(InputError, match="too stiff for the explicit") as e:
         OpenLoopRun(scenario, actions=np.zeros((1, 6)), release_step=None)
     assert "\n" not in str(e.value)
+
+
+@pytest.mark.parametrize("turns", [False, True])
+def test_the_held_patches_turn_with_the_grasped_edge_where_set(turns):
+    """The left gripper moves 6 cm back and the right 6 cm forward, which
+    turns the grasped edge by about 22 degrees: with `grasp_turns` each held
+    particle keeps its rest offset from its gripper turned with the edge;
+    without, its rest offset."""
+    scenario = LoadScenario(
+        scenario_name="prior",
+        scenario_text="cloth: {resolution: [6, 6, 2], vbd: {resolution: [6, 6], "
+        f"grasp_turns: {str(turns).lower()}}}}}\n",
+    )
+    actions = np.tile([0.0, -0.02, 0.01, 0.0, 0.02, 0.01], (3, 1))
+    run = OpenLoopRun(scenario, actions=actions, release_step=None)
+    run.advance_to(0.8)
+    cloth = run.station.diagram.GetSubsystemByName("vbd_cloth")
+    context = cloth.GetMyContextFromRoot(run.context)
+    engine = cloth._engine
+    n = len(engine._free_mass)
+    sheet = context.get_discrete_state(0).get_value()[: 3 * n].reshape(-1, 3)
+    grippers = context.get_discrete_state(1).get_value().reshape(2, 3)
+    rest_edge = engine._rest_edge.numpy()[0]
+    edge = grippers[1] - grippers[0]
+    angle = np.arctan2(edge[1], edge[0]) - np.arctan2(rest_edge[1], rest_edge[0])
+    assert np.degrees(angle) > 15.0
+    c, s = (np.cos(angle), np.sin(angle)) if turns else (1.0, 0.0)
+    rest = engine._offsets.numpy()
+    expected = np.c_[
+        c * rest[:, 0] - s * rest[:, 1], s * rest[:, 0] + c * rest[:, 1], rest[:, 2]
+    ]
+    side = engine._side.numpy()
+    offsets = sheet[engine._held_idx] - grippers[side]
+    np.testing.assert_allclose(offsets, expected, atol=1e-6)
