@@ -111,6 +111,9 @@ def ObjectSafetyContext(
         far_corners_may_hang=estimated and scenario.safety.hidden_corners_hang,
         far_corners_may_drape=estimated and scenario.safety.hidden_corners_drape,
         side_length=scenario.cloth.size[1],
+        direction_margin_deg=(
+            scenario.safety.estimate_margin_deg if estimated else 0.0
+        ),
     )
 
 

@@ -49,6 +49,14 @@ class SafetyConfig:
     # seeds 0 / 1 / 2: true rule breaks 3 / 4 / 3 -> 1 / 3 / 1, successes
     # 9 / 9 / 10 -> 8 / 8 / 9 (README), hence off by default.
     hidden_corner_margin_deg: float = 0.0
+    # The controller's view only: rule 2 on the estimated state (every far
+    # corner, seen or hypothesised) uses tau_d_deg less this [deg] (the
+    # hypothesised ones less hidden_corner_margin_deg on top). The MPC's
+    # best action often lies on the rule's boundary, where f_R's few
+    # millimetres of error decide on which side of it the true cloth is:
+    # with 0, most of the true rule breaks of `box` and `box_big` were
+    # moves within a few degrees of tau_d_deg (README, MPC).
+    estimate_margin_deg: float = 0.0
     # The controller's view only: the robot measures where it holds s1 and
     # s2, so f_R's own estimate of them says how well it read a frame. Where
     # the two lie more than this [m] (summed) from the grippers, f_R has
@@ -87,6 +95,16 @@ class SafetyConfig:
             raise ValueError(
                 "safety.hidden_corner_margin_deg must be in [0, tau_d_deg), got "
                 f"{self.hidden_corner_margin_deg}"
+            )
+        if not (
+            0 <= self.estimate_margin_deg
+            and self.estimate_margin_deg + self.hidden_corner_margin_deg
+            < self.tau_d_deg
+        ):
+            raise ValueError(
+                "safety.estimate_margin_deg must be >= 0 and, with "
+                "hidden_corner_margin_deg, below tau_d_deg, got "
+                f"{self.estimate_margin_deg}"
             )
         if not self.misread_grasp_error > 0:
             raise ValueError(
@@ -132,6 +150,9 @@ class SafetyContext:
     # against them (the estimator's last trusted far corners, when f_R has
     # misread the frame), or None.
     far_corner_alternatives: np.ndarray | None = None
+    # The states are estimates: rule 2 keeps this much [deg] inside
+    # tau_d_deg (SafetyConfig.estimate_margin_deg; 0 for the true cloth).
+    direction_margin_deg: float = 0.0
 
 
 # A keypoint this close [m] to the object's top face (within its footprint
@@ -166,11 +187,10 @@ def rule_violations(
     d = (s1n - s2n).norm(dim=-1)
     L = ctx.edge_length
     out["distance"] = (d <= config.tau_c * L) | (d >= config.tau_f * L)
-    cos_max = math.cos(math.radians(config.tau_d_deg))
+    limit = config.tau_d_deg - ctx.direction_margin_deg
+    cos_max = math.cos(math.radians(limit))
     # A hypothesised hidden corner is judged with the margin.
-    cos_hidden = math.cos(
-        math.radians(config.tau_d_deg - config.hidden_corner_margin_deg)
-    )
+    cos_hidden = math.cos(math.radians(limit - config.hidden_corner_margin_deg))
 
     def bad_direction(a, edge, cos_limit=cos_max):
         na, ne = a.norm(dim=-1), edge.norm(dim=-1)

@@ -271,3 +271,27 @@ def test_a_hidden_corner_is_judged_with_a_margin():
     assert direction(estimate, hidden, 10.0)
     with pytest.raises(ValueError, match="hidden_corner_margin_deg"):
         SafetyConfig(tau_d_deg=150.0, hidden_corner_margin_deg=150.0)
+
+
+def test_the_controller_keeps_a_margin_inside_rule_2_where_set():
+    """A move 97 degrees from s1 - s3 passes rule 2 (tau_d 100 degrees) on
+    the true cloth; the controller's view with `estimate_margin_deg` 5
+    refuses it, and scores of the true cloth (margin 0 in their context)
+    are untouched by the setting."""
+    import dataclasses as dc
+
+    import torch
+
+    angle = np.radians(97.0)
+    # s1 - s3 points to -y: a move at 97 degrees from it.
+    move = 0.02 * np.array([np.sin(angle), -np.cos(angle), 0.0])
+    A = torch.as_tensor(np.r_[move, 0.0, 0.0, 0.0])
+    S = torch.as_tensor(flat_state())
+    cfg = SafetyConfig(estimate_margin_deg=5.0)
+    estimated = dc.replace(CTX, direction_margin_deg=cfg.estimate_margin_deg)
+    assert not bool(rule_violations(S, A, cfg, CTX)["direction"])
+    assert bool(rule_violations(S, A, cfg, estimated)["direction"])
+    with pytest.raises(ValueError, match="estimate_margin_deg"):
+        SafetyConfig(estimate_margin_deg=-1.0)
+    with pytest.raises(ValueError, match="estimate_margin_deg"):
+        SafetyConfig(estimate_margin_deg=60.0, hidden_corner_margin_deg=50.0)
