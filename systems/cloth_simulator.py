@@ -302,6 +302,32 @@ def _define_hold_kernel(wp):
     def grasped_edge(start: wp.array[wp.vec3], end: wp.array[wp.vec3], alpha: float):
         return start[1] - start[0] + alpha * (end[1] - end[0] - start[1] + start[0])
 
+    @wp.func
+    def outside_boxes(
+        x: wp.vec3,
+        box_p: wp.array[wp.vec3],
+        box_R: wp.array[wp.mat33],
+        box_half: wp.array[wp.vec3],
+    ):
+        """`x`, or where it lies inside a box, the nearest point of that
+        box's surface (along the axis of least depth)."""
+        for b in range(box_p.shape[0]):
+            local = wp.transpose(box_R[b]) * (x - box_p[b])
+            h = box_half[b]
+            depth = wp.vec3(
+                h[0] - wp.abs(local[0]), h[1] - wp.abs(local[1]), h[2] - wp.abs(local[2])
+            )
+            if depth[0] > 0.0 and depth[1] > 0.0 and depth[2] > 0.0:
+                k = 0
+                if depth[1] < depth[k]:
+                    k = 1
+                if depth[2] < depth[k]:
+                    k = 2
+                out = local
+                out[k] = wp.sign(local[k]) * h[k]
+                x = box_p[b] + box_R[b] * out
+        return x
+
     @wp.kernel
     def hold_grasped(
         indices: wp.array[wp.int32],
@@ -315,6 +341,9 @@ def _define_hold_kernel(wp):
         step: float,
         inv_dt: float,
         turn: int,
+        box_p: wp.array[wp.vec3],
+        box_R: wp.array[wp.mat33],
+        box_half: wp.array[wp.vec3],
         q: wp.array[wp.vec3],
         qd: wp.array[wp.vec3],
     ):
@@ -333,7 +362,12 @@ def _define_hold_kernel(wp):
                 offsets[i], rest_edge[0], grasped_edge(start, end, alpha - step)
             )
             velocity = velocity + (offset - before) * (inv_dt / step)
-        q[p] = start[s] + alpha * (end[s] - start[s]) + offset
+        # A held particle carried into a collider (the patch reaches past
+        # the fingers, which keep clear of the object) lies on its surface,
+        # as the cloth around a pinch folds over an edge.
+        q[p] = outside_boxes(
+            start[s] + alpha * (end[s] - start[s]) + offset, box_p, box_R, box_half
+        )
         qd[p] = velocity
 
     return hold_grasped
@@ -656,6 +690,23 @@ class _VbdEngine:
         g0 = np.stack([grippers_W0[s] for s in SIDES])
         self._offsets.numpy()[:] = np.asarray(sheet_W)[idx] - g0[side]
         self._rest_edge = wp.array([g0[1] - g0[0]], dtype=wp.vec3, device="cpu")
+        self._box_p = wp.array(
+            np.array([b.X_WB.translation() for b in colliders]).reshape(-1, 3),
+            dtype=wp.vec3,
+            device="cpu",
+        )
+        self._box_R = wp.array(
+            np.array([b.X_WB.rotation().matrix() for b in colliders]).reshape(
+                -1, 3, 3
+            ),
+            dtype=wp.mat33,
+            device="cpu",
+        )
+        self._box_half = wp.array(
+            np.array([np.asarray(b.size) / 2 for b in colliders]).reshape(-1, 3),
+            dtype=wp.vec3,
+            device="cpu",
+        )
         self._n = len(sheet_W)
         self._hold = _hold_kernel(wp)
         self._bend = None
@@ -710,6 +761,9 @@ class _VbdEngine:
                     1.0 / n,
                     1.0 / self._dt,
                     int(self._s.grasp_turns),
+                    self._box_p,
+                    self._box_R,
+                    self._box_half,
                     s0.particle_q,
                     s0.particle_qd,
                 ],

@@ -342,3 +342,43 @@ def test_the_held_patches_turn_with_the_grasped_edge_where_set(turns):
     side = engine._side.numpy()
     offsets = sheet[engine._held_idx] - grippers[side]
     np.testing.assert_allclose(offsets, expected, atol=1e-6)
+
+
+def test_a_held_particle_carried_into_a_collider_lies_on_its_surface():
+    """The left gripper carries its corner 6 cm towards -y, 1 cm into a 10
+    cm box standing there (the held patch reaches past fingers that keep
+    clear of the object): the held particle lies on the box's near face
+    instead, and the right one, outside any box, follows its gripper."""
+    import dataclasses as dc
+
+    from fabric_imitation.scenarios.schema import VbdConfig
+    from fabric_imitation.systems.cloth_simulator import (
+        BoxCollider,
+        VbdSettings,
+        _VbdEngine,
+    )
+    from pydrake.math import RigidTransform
+
+    tris, rest = _sheet(4, 4, spacing=0.04)
+    sheet = rest + [0.0, 0.0, 0.05]
+    left, right = 0, 12  # (0, 0) and (0.12, 0), the edge y = 0
+    fields = {f.name for f in dc.fields(VbdSettings)}
+    settings = VbdSettings(
+        friction=0.3, **{k: v for k, v in dc.asdict(VbdConfig()).items() if k in fields}
+    )
+    box = BoxCollider(RigidTransform([0.0, -0.1, 0.05]), (0.1, 0.1, 0.1), 0.3)
+    engine = _VbdEngine(
+        sheet_W=sheet,
+        triangles=tris,
+        grasped={"left": [left], "right": [right]},
+        grippers_W0={"left": sheet[left], "right": sheet[right]},
+        colliders=[box],
+        settings=settings,
+        time_step=0.01,
+    )
+    start = np.stack([sheet[left], sheet[right]])
+    end = start + [0.0, -0.06, 0.0]
+    x = np.r_[sheet.ravel(), np.zeros(sheet.size)]
+    q, _ = engine.step(x, start.ravel(), end.ravel(), held=True)
+    np.testing.assert_allclose(q[left], [0.0, -0.05, 0.05], atol=1e-9)
+    np.testing.assert_allclose(q[right], end[1], atol=1e-9)
