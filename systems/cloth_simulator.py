@@ -315,7 +315,9 @@ def _define_hold_kernel(wp):
             local = wp.transpose(box_R[b]) * (x - box_p[b])
             h = box_half[b]
             depth = wp.vec3(
-                h[0] - wp.abs(local[0]), h[1] - wp.abs(local[1]), h[2] - wp.abs(local[2])
+                h[0] - wp.abs(local[0]),
+                h[1] - wp.abs(local[1]),
+                h[2] - wp.abs(local[2]),
             )
             if depth[0] > 0.0 and depth[1] > 0.0 and depth[2] > 0.0:
                 k = 0
@@ -696,9 +698,7 @@ class _VbdEngine:
             device="cpu",
         )
         self._box_R = wp.array(
-            np.array([b.X_WB.rotation().matrix() for b in colliders]).reshape(
-                -1, 3, 3
-            ),
+            np.array([b.X_WB.rotation().matrix() for b in colliders]).reshape(-1, 3, 3),
             dtype=wp.mat33,
             device="cpu",
         )

@@ -163,6 +163,17 @@ def test_rule_2_for_estimates_allows_for_hidden_hanging_corners(box):
     assert not bool(rule_violations(t, up, box.safety, estimated)["direction"])
 
 
+def test_only_the_controllers_rule_2_keeps_the_estimate_margin(box):
+    """safety.estimate_margin_deg narrows rule 2 in the controller's context
+    (estimated states), never in the one that scores the true cloth."""
+    import dataclasses as dc
+
+    scenario = dc.replace(box, safety=dc.replace(box.safety, estimate_margin_deg=7.0))
+    assert ObjectSafetyContext(scenario).direction_margin_deg == 0.0
+    estimated = ObjectSafetyContext(scenario, estimated=True)
+    assert estimated.direction_margin_deg == 7.0
+
+
 class FixedMpc:
     """Returns one object-frame action; records the frame pose it was given."""
 
