@@ -53,10 +53,11 @@ class SafetyConfig:
     # corner, seen or hypothesised) uses tau_d_deg less this [deg] (the
     # hypothesised ones less hidden_corner_margin_deg on top). The MPC's
     # best action often lies on the rule's boundary, where f_R's few
-    # millimetres of error decide on which side of it the true cloth is:
-    # with 0, most of the true rule breaks of `box` and `box_big` were
-    # moves within a few degrees of tau_d_deg (README, MPC).
-    estimate_margin_deg: float = 0.0
+    # millimetres of error decide on which side of it the true cloth is.
+    # 10 trials at seeds 0 / 1 / 2 of box, hang, box_big, 0 -> 5 degrees:
+    # true rule breaks 3 / 3 / 8 -> 0 / 0 / 0 (summed over the seeds),
+    # successes 30 / 30 / 29 -> 29 / 30 / 27 (README, MPC).
+    estimate_margin_deg: float = 5.0
     # The controller's view only: the robot measures where it holds s1 and
     # s2, so f_R's own estimate of them says how well it read a frame. Where
     # the two lie more than this [m] (summed) from the grippers, f_R has
