@@ -106,6 +106,8 @@ class MpcResult:
     # When infeasible: how many of the last iteration's sampled sequences
     # break each safety rule at some step (which rule blocked the step).
     blocked_by: dict[str, int] | None = None
+    # Solved with rule 2 as written: no sequence kept the estimate margin.
+    margin_dropped: bool = False
 
 
 class Mpc:
@@ -276,6 +278,41 @@ class Mpc:
 
     @torch.no_grad()
     def solve(
+        self,
+        S,
+        *,
+        step: int = 0,
+        seed: int = 0,
+        previous_progress: int | None = None,
+        frame_pose=None,
+        far_corner_alternatives=None,
+    ) -> MpcResult:
+        """One control step from state S (M, 3) (see `_solve_once`). Where
+        no sampled sequence keeps rule 2's margin for estimates
+        (SafetyContext.direction_margin_deg), the step is solved once more
+        with the rule as written, instead of ending the episode."""
+        kwargs = dict(
+            step=step,
+            seed=seed,
+            previous_progress=previous_progress,
+            frame_pose=frame_pose,
+            far_corner_alternatives=far_corner_alternatives,
+        )
+        result = self._solve_once(S, **kwargs)
+        margin = self.ctx.direction_margin_deg
+        if result.feasible or margin == 0 or not self.config.use_cost:
+            return result
+        self.ctx = dc.replace(self.ctx, direction_margin_deg=0.0)
+        try:
+            again = self._solve_once(S, **kwargs)
+        finally:
+            self.ctx = dc.replace(self.ctx, direction_margin_deg=margin)
+        again.seconds += result.seconds
+        again.iterations += result.iterations
+        again.margin_dropped = True
+        return again
+
+    def _solve_once(
         self,
         S,
         *,

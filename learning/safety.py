@@ -56,7 +56,9 @@ class SafetyConfig:
     # millimetres of error decide on which side of it the true cloth is.
     # 10 trials at seeds 0 / 1 / 2 of box, hang, box_big, 0 -> 5 degrees:
     # true rule breaks 3 / 3 / 8 -> 0 / 0 / 0 (summed over the seeds),
-    # successes 30 / 30 / 29 -> 29 / 30 / 27 (README, MPC).
+    # successes 30 / 30 / 29 -> 29 / 30 / 27 (README, MPC). Where no
+    # sampled sequence keeps the margin, the MPC solves the step again
+    # with the rule as written (Mpc.solve) rather than end the episode.
     estimate_margin_deg: float = 5.0
     # The controller's view only: the robot measures where it holds s1 and
     # s2, so f_R's own estimate of them says how well it read a frame. Where

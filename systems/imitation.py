@@ -394,6 +394,12 @@ class MpcController(StepController):
                 result.blocked_by,
             )
             return TERMINATED_INFEASIBLE, None, result.progress, result.iterations
+        if result.margin_dropped:
+            _LOG.info(
+                "step %d: no action kept rule 2's estimate margin; solved with "
+                "the rule as written",
+                steps,
+            )
         return RUNNING, result.action.numpy(), result.progress, result.iterations
 
 

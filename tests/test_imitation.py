@@ -408,6 +408,38 @@ def test_mpc_reports_no_feasible_action():
     assert not mpc.solve(torch.as_tensor(start)).feasible
 
 
+def test_mpc_solves_again_without_the_estimate_margin_before_giving_up():
+    """Where no sequence keeps rule 2's margin for estimates, the step is
+    solved once more with the rule as written; the margin stays set for the
+    next step."""
+    import dataclasses as dc
+
+    states = pulled_demo()
+    mpc = small_mpc(Linear(), states)
+    mpc.ctx = dc.replace(CTX, direction_margin_deg=5.0)
+    margins = []
+    once = mpc._solve_once
+
+    def only_without_margin(S, **kwargs):
+        margins.append(mpc.ctx.direction_margin_deg)
+        result = once(S, **kwargs)
+        if mpc.ctx.direction_margin_deg > 0:
+            result.feasible, result.action = False, torch.zeros(6)
+        return result
+
+    mpc._solve_once = only_without_margin
+    result = mpc.solve(torch.as_tensor(states[0]))
+    assert margins == [5.0, 0.0]
+    assert result.feasible and result.margin_dropped
+    assert mpc.ctx.direction_margin_deg == 5.0
+    margins.clear()
+    # Without a margin there is nothing to drop: one solve.
+    mpc.ctx = dc.replace(CTX, direction_margin_deg=0.0)
+    result = mpc.solve(torch.as_tensor(states[0]))
+    assert result.feasible and not result.margin_dropped
+    assert margins == [0.0]
+
+
 def test_demo_reward_system():
     states = pulled_demo()
     model = demo_model(states)
