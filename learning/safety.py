@@ -100,7 +100,7 @@ class SafetyConfig:
                 f"{self.hidden_corner_margin_deg}"
             )
         if not (
-            0 <= self.estimate_margin_deg
+            self.estimate_margin_deg >= 0
             and self.estimate_margin_deg + self.hidden_corner_margin_deg
             < self.tau_d_deg
         ):
