@@ -54,9 +54,11 @@ class SafetyConfig:
     # hypothesised ones less hidden_corner_margin_deg on top). The MPC's
     # best action often lies on the rule's boundary, where f_R's few
     # millimetres of error decide on which side of it the true cloth is.
-    # 10 trials at seeds 0 / 1 / 2 of box, hang, box_big, 0 -> 5 degrees:
-    # true rule breaks 3 / 3 / 8 -> 0 / 0 / 0 (summed over the seeds),
-    # successes 30 / 30 / 29 -> 29 / 30 / 27 (README, MPC). Where no
+    # 10 trials at seeds 0 / 1 / 2 of box, hang, box_big, 0 -> 5 degrees,
+    # on the priors and demos shipped before the current ones: true rule
+    # breaks 3 / 3 / 8 -> 0 / 0 / 0 (summed over the seeds), successes
+    # 30 / 30 / 29 -> 29 / 30 / 27; with the current ones and 5 degrees,
+    # 30 / 29 / 29 successes with 0 / 3 / 0 breaks (README). Where no
     # sampled sequence keeps the margin, the MPC solves the step again
     # with the rule as written (Mpc.solve) rather than end the episode.
     estimate_margin_deg: float = 5.0
