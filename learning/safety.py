@@ -33,6 +33,15 @@ class SafetyConfig:
     # seed 0: true-cloth rule breaks 53 -> 16 per 10 trials, successes
     # 10 -> 7 (README). Rule breaks are always scored without it.
     hidden_corners_hang: bool = True
+    # ... and, where a grasped corner is higher above the surface under it
+    # than the side is long, with the side hanging free below it, its far
+    # corner anywhere within this angle [deg] of straight below (a towel
+    # swings as it is carried): f_R, seeing the towel from above, puts the
+    # far corner up by the grippers. On `hang` (seed 2, trial 1, step 18)
+    # the grippers 33 cm up moved 2.7 cm down and back, 153 degrees off the
+    # true side and 145 off straight up, with the far corner 4.6 cm behind
+    # the plumb line. 0: straight below only.
+    hanging_swing_deg: float = 10.0
     # The controller's view only, as above: once the cloth lies on the
     # object's top (a keypoint within DRAPE_MARGIN of the top face, or
     # keypoints on opposite sides of the object, one below its top), judge
@@ -110,6 +119,11 @@ class SafetyConfig:
                 "safety.estimate_margin_deg must be >= 0 and, with "
                 "hidden_corner_margin_deg, below tau_d_deg, got "
                 f"{self.estimate_margin_deg}"
+            )
+        if not 0 <= self.hanging_swing_deg < 90:
+            raise ValueError(
+                "safety.hanging_swing_deg must be in [0, 90), got "
+                f"{self.hanging_swing_deg}"
             )
         if not self.misread_grasp_error > 0:
             raise ValueError(
@@ -212,6 +226,23 @@ def rule_violations(
                 | bad_direction(a_l, s1 - s3d, cos_hidden)
                 | bad_direction(a_r, s2 - s4d, cos_hidden)
             )
+        cos_swing = math.cos(
+            math.radians(
+                max(
+                    limit - config.hidden_corner_margin_deg - config.hanging_swing_deg,
+                    0.0,
+                )
+            )
+        )
+        side = ctx.side_length or ctx.edge_length
+        for a, g in ((a_l, s1), (a_r, s2)):
+            below = _dropped(g, 1.0, ctx)
+            free = (g[..., 2] - below[..., 2]) >= side
+            plumb = torch.zeros_like(g)
+            plumb[..., 2] = side
+            out["direction"] = out["direction"] | (
+                free & bad_direction(a, plumb, cos_swing)
+            )
     if ctx.far_corner_alternatives is not None:
         alt = torch.as_tensor(ctx.far_corner_alternatives, dtype=S.dtype)
         out["direction"] = (
@@ -222,10 +253,11 @@ def rule_violations(
     if ctx.far_corners_may_drape and ctx.object_size is not None:
         on_top = _cloth_on_top(S, ctx)
         for a, g in ((a_l, s1), (a_r, s2)):
-            far, applies = _draped(g, ctx)
-            out["direction"] = out["direction"] | (
-                on_top & applies & bad_direction(a, g - far, cos_hidden)
-            )
+            for path in (_draped, _draped_straight):
+                far, applies = path(g, ctx)
+                out["direction"] = out["direction"] | (
+                    on_top & applies & bad_direction(a, g - far, cos_hidden)
+                )
     lo = torch.as_tensor(ctx.workspace_lower, dtype=S.dtype)
     hi = torch.as_tensor(ctx.workspace_upper, dtype=S.dtype)
     grippers = torch.stack([s1n, s2n], -2)
@@ -354,6 +386,56 @@ def _draped(g: torch.Tensor, ctx: SafetyContext) -> tuple[torch.Tensor, torch.Te
     beyond = (rest - h).clamp_min(0.0)
     far = torch.cat([exit_xy + beyond[..., None] * u, (h - down)[..., None]], -1)
     applies = outside & (n[..., 0] > 1e-6) & (rest > 0)
+    return far, applies
+
+
+def _draped_straight(
+    g: torch.Tensor, ctx: SafetyContext
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """As `_draped`, but the side runs straight across the object, square to
+    the face it crosses (the face g lies furthest beyond), from g's own place
+    along that face (kept within DRAPE_MARGIN of its ends): a sheet draped
+    over a straight edge keeps its sides square to the edge, so a side
+    grasped beyond the plate's end hangs beyond it. On `hang` (2026-12-02,
+    the rule breaks of seeds 1 and 2 on the true cloth) the true far corner
+    lay 1-4 cm beyond the plate's end, where `_draped` puts it at the end,
+    15 degrees less off the move."""
+    size = torch.as_tensor(ctx.object_size, dtype=g.dtype)
+    half, h = size[:2], size[2]
+    half = half / 2
+    gap = g[..., :2].abs() - half  # (..., 2) how far g lies beyond each face
+    across_y = gap[..., 1] >= gap[..., 0]  # crosses a face of constant y
+    margin = torch.as_tensor(DRAPE_MARGIN, dtype=g.dtype)
+    far_xy = []
+    for axis in (0, 1):
+        along = g[..., axis].clamp(-(half[axis] + margin), half[axis] + margin)
+        side = torch.sign(g[..., axis])
+        far_xy.append((along, side, -side * half[axis]))
+    to_top_y = torch.stack(
+        [g[..., 0] - far_xy[0][0], gap[..., 1], h - g[..., 2]], -1
+    ).norm(dim=-1)
+    to_top_x = torch.stack(
+        [gap[..., 0], g[..., 1] - far_xy[1][0], h - g[..., 2]], -1
+    ).norm(dim=-1)
+    to_top = torch.where(across_y, to_top_y, to_top_x)
+    width = torch.where(across_y, 2 * half[1], 2 * half[0])
+    rest = (ctx.side_length or ctx.edge_length) - to_top - width
+    down = torch.minimum(rest, h).clamp_min(0.0)
+    beyond = (rest - h).clamp_min(0.0)
+    # The far face lies opposite g; beyond it the side goes on over the table.
+    x_when_y = far_xy[0][0]
+    y_when_y = far_xy[1][2] - far_xy[1][1] * beyond
+    x_when_x = far_xy[0][2] - far_xy[0][1] * beyond
+    y_when_x = far_xy[1][0]
+    far = torch.stack(
+        [
+            torch.where(across_y, x_when_y, x_when_x),
+            torch.where(across_y, y_when_y, y_when_x),
+            h - down,
+        ],
+        -1,
+    )
+    applies = (torch.maximum(gap[..., 0], gap[..., 1]) > 0) & (rest > 0)
     return far, applies
 
 

@@ -273,6 +273,101 @@ def test_a_hidden_corner_is_judged_with_a_margin():
         SafetyConfig(tau_d_deg=150.0, hidden_corner_margin_deg=150.0)
 
 
+def test_a_side_draped_beyond_the_plates_end_hangs_square_to_its_edge():
+    """A towel over a plate (hang, seed 1, trial 5, step 43): the left
+    gripper, 3 cm beyond the plate's end, moves towards the plate and down
+    while its far corner s3 hangs behind the plate beyond its end (151
+    degrees on the true cloth); f_R puts s3 by the gripper. A side draped
+    from the gripper to the nearest point of the plate's top ends at the
+    plate's end, 136 degrees off the move; the side square to the plate's
+    edge, from the gripper's own place along it, 147 degrees, over the
+    controller's 145 (tau_d less the estimate margin)."""
+    import dataclasses as dc
+
+    import torch
+    from fabric_imitation.learning.safety import _draped, _draped_straight
+
+    estimate = np.array(
+        [
+            [-0.115, -0.122, 0.110],  # s1
+            [-0.007, -0.072, 0.076],
+            [0.107, -0.126, 0.106],  # s2
+            [0.086, -0.006, 0.194],  # on the plate's top edge
+            [0.064, 0.004, 0.204],  # s4
+            [-0.029, -0.061, 0.083],
+            [-0.105, -0.118, 0.110],  # s3, as f_R sees it
+            [-0.119, -0.017, 0.144],
+        ]
+    )
+    truth = estimate.copy()
+    truth[6] = [-0.123, 0.012, 0.052]
+    truth[4] = [0.086, 0.013, 0.053]
+    A = torch.tensor([-0.0165, 0.026, -0.0264, -0.0102, 0.0073, -0.026])
+    cfg = SafetyConfig(tau_d_deg=150.0)  # hang's
+    plate = PLATE
+    controller = dc.replace(plate, far_corners_may_drape=True, direction_margin_deg=5)
+
+    def direction(S, ctx):
+        return bool(rule_violations(torch.as_tensor(S), A, cfg, ctx)["direction"])
+
+    assert direction(truth, plate)
+    assert not direction(estimate, dc.replace(plate, direction_margin_deg=5))
+    assert direction(estimate, controller)
+    g = torch.as_tensor(estimate[0])
+    nearest, applies = _draped(g, controller)
+    square, applies_square = _draped_straight(g, controller)
+    assert bool(applies) and bool(applies_square)
+    assert abs(float(nearest[0]) - truth[6, 0]) > 0.03  # at the plate's end
+    assert abs(float(square[0]) - truth[6, 0]) < 0.01  # by the true corner
+    assert 0 < float(square[1]) < 0.02 and float(square[2]) < 0.1
+    # Far beyond the plate's end the side does not cross the plate.
+    beside = g.clone()
+    beside[0] = -0.40
+    assert not bool(_draped_straight(beside, controller)[1])
+
+
+def test_a_side_hanging_free_below_a_gripper_may_swing():
+    """A towel carried 33 cm up behind the plate (hang, seed 2, trial 1,
+    step 18): f_R puts the left far corner s3 up by the grippers, the true
+    one hangs 4.6 cm behind the plumb line, 6 cm over the table. The left
+    gripper moves 2.7 cm down and back: 153 degrees off the true side, 145
+    off straight up. Judged with the side hanging within hanging_swing_deg
+    of straight below, the move is refused; held lower than the side is
+    long (the towel partly on the table), the hypothesis does not apply."""
+    import dataclasses as dc
+
+    import torch
+
+    estimate = np.array(
+        [
+            [-0.146, 0.209, 0.331],  # s1
+            [0.017, 0.212, 0.298],
+            [0.153, 0.207, 0.325],  # s2
+            [0.124, 0.297, 0.213],
+            [0.070, 0.353, 0.115],  # s4
+            [0.002, 0.236, 0.307],
+            [-0.084, 0.221, 0.317],  # s3, as f_R sees it
+            [-0.124, 0.237, 0.330],
+        ]
+    )
+    truth = estimate.copy()
+    truth[6] = [-0.152, 0.255, 0.061]
+    A = torch.tensor([-0.0086, 0.0132, -0.0219, -0.0027, 0.016, 0.001])
+    plate = PLATE
+    controller = dc.replace(plate, far_corners_may_hang=True, direction_margin_deg=5)
+
+    def direction(S, ctx, swing=10.0):
+        cfg = SafetyConfig(tau_d_deg=150.0, hanging_swing_deg=swing)
+        return bool(rule_violations(torch.as_tensor(S), A, cfg, ctx)["direction"])
+
+    assert direction(truth, plate)
+    assert direction(estimate, controller)
+    assert not direction(estimate, controller, swing=0.0)  # plumb: 145 degrees
+    assert not direction(estimate - [0.0, 0.0, 0.05], controller)
+    with pytest.raises(ValueError, match="hanging_swing_deg"):
+        SafetyConfig(hanging_swing_deg=90.0)
+
+
 def test_the_controller_keeps_a_margin_inside_rule_2_where_set():
     """A move 97 degrees from s1 - s3 passes rule 2 (tau_d 100 degrees) on
     the true cloth; the controller's view with `estimate_margin_deg` 5
