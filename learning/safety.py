@@ -40,14 +40,20 @@ class SafetyConfig:
     # far corner up by the grippers. On `hang` (seed 2, trial 1, step 18)
     # the grippers 33 cm up moved 2.7 cm down and back, 153 degrees off the
     # true side and 145 off straight up, with the far corner 4.6 cm behind
-    # the plumb line. 0: straight below only.
+    # the plumb line. With it, `evaluate --scenarios hang --trials 10`,
+    # seeds 0 / 1 / 2: true rule breaks 0 / 0 / 1 -> 0 / 0 / 0, successes
+    # 9 / 10 / 10 both; box and box_big unchanged (README). 0: straight
+    # below only.
     hanging_swing_deg: float = 10.0
     # The controller's view only, as above: once the cloth lies on the
     # object's top (a keypoint within DRAPE_MARGIN of the top face, or
     # keypoints on opposite sides of the object, one below its top), judge
     # rule 2 also with each far corner hanging down the object's far side,
     # where a side draped over the object puts it out of the camera's sight
-    # (SafetyContext.far_corners_may_drape). On for `hang` (scenarios.yaml);
+    # (SafetyContext.far_corners_may_drape; the side laid towards the top's
+    # nearest point and square to the face it crosses: hang, seeds 0 / 1 /
+    # 2, true rule breaks 0 / 1 / 2 -> 0 / 0 / 1 with the square path,
+    # successes 9 / 10 / 10 both, README). On for `hang` (scenarios.yaml);
     # off by default: on `box_big` it also refused the moves that carry the
     # cloth onto the box (seed 0: 8 of 10 against 10, one trial stuck with
     # no feasible action while the far corners still trailed behind).
@@ -155,13 +161,17 @@ class SafetyContext:
     # States are camera estimates, whose far corners s3, s4 may be hidden
     # under a hanging side: f_R then puts them on the surface it sees, too
     # high. Rule 2 is then also judged with each far corner dropped halfway
-    # and all the way to the surface below it (table or object top), so an
-    # action passes only if it passes wherever the corner may hang.
+    # and all the way to the surface below it (table or object top), and,
+    # where a grasped corner is higher above that surface than the side is
+    # long, with the side hanging free below it (SafetyConfig.
+    # hanging_swing_deg), so an action passes only if it passes wherever
+    # the corner may hang.
     far_corners_may_hang: bool = False
     # ... and may lie across the object: with part of the cloth on the
     # object's top, a side draped over it from the grasped corner hangs down
-    # the far face, its far corner under the cloth (`_draped`). Needs
-    # object_size.
+    # the far face, its far corner under the cloth (`_draped` and
+    # `_draped_straight`: towards the nearest point of the top, or square
+    # to the face it crosses). Needs object_size.
     far_corners_may_drape: bool = False
     # Rest length [m] of the sides s1-s3 and s2-s4 (None: edge_length).
     side_length: float | None = None
