@@ -286,6 +286,7 @@ class Mpc:
         previous_progress: int | None = None,
         frame_pose=None,
         far_corner_alternatives=None,
+        cloth_on_object: bool = False,
     ) -> MpcResult:
         """One control step from state S (M, 3) (see `_solve_once`). Where
         no sampled sequence keeps rule 2's margin for estimates
@@ -297,6 +298,7 @@ class Mpc:
             previous_progress=previous_progress,
             frame_pose=frame_pose,
             far_corner_alternatives=far_corner_alternatives,
+            cloth_on_object=cloth_on_object,
         )
         result = self._solve_once(S, **kwargs)
         margin = self.ctx.direction_margin_deg
@@ -321,6 +323,7 @@ class Mpc:
         previous_progress: int | None = None,
         frame_pose=None,
         far_corner_alternatives=None,
+        cloth_on_object: bool = False,
     ) -> MpcResult:
         """One control step from state S (M, 3).
 
@@ -332,7 +335,8 @@ class Mpc:
         workspace rule's world box is checked (default: the one given at
         construction). `far_corner_alternatives` ((2, 3) or None): other
         places of s3, s4 that rule 2 is also judged against this step
-        (SafetyContext).
+        (SafetyContext). `cloth_on_object`: the cloth was seen on the object
+        in an earlier step (SafetyContext.cloth_on_object).
         """
         cfg = self.config
         t0 = time.perf_counter()
@@ -344,6 +348,7 @@ class Mpc:
             if frame_pose is None
             else np.asarray(frame_pose, float),
             far_corner_alternatives=far_corner_alternatives,
+            cloth_on_object=cloth_on_object,
         )
         S = torch.as_tensor(S, dtype=torch.float32)
         J0 = self.current_progress(S, step, previous_progress)

@@ -173,6 +173,10 @@ class SafetyContext:
     # `_draped_straight`: towards the nearest point of the top, or square
     # to the face it crosses). Needs object_size.
     far_corners_may_drape: bool = False
+    # The cloth has been seen on the object in an earlier step of this
+    # episode (the controller's memory): the drape hypothesis holds even
+    # where the current estimate shows no cloth on it.
+    cloth_on_object: bool = False
     # Rest length [m] of the sides s1-s3 and s2-s4 (None: edge_length).
     side_length: float | None = None
     # Other places (2, 3) where s3 and s4 may be: rule 2 is also judged
@@ -261,7 +265,7 @@ def rule_violations(
             | bad_direction(a_r, s2 - alt[1], cos_hidden)
         )
     if ctx.far_corners_may_drape and ctx.object_size is not None:
-        on_top = _cloth_on_top(S, ctx)
+        on_top = _cloth_on_top(S, ctx) | ctx.cloth_on_object
         for a, g in ((a_l, s1), (a_r, s2)):
             for path in (_draped, _draped_straight):
                 far, applies = path(g, ctx)
@@ -321,6 +325,15 @@ def _dropped(p: torch.Tensor, fraction: float, ctx: SafetyContext) -> torch.Tens
         floor = torch.where(over, 2 * half[2], floor)
     z = p[..., 2] - fraction * (p[..., 2] - floor).clamp_min(0.0)
     return torch.cat([p[..., :2], z[..., None]], -1)
+
+
+def cloth_on_object(S, ctx: SafetyContext) -> bool:
+    """Whether the estimated state S (M, 3) shows cloth on the object's top
+    (or across it), where `ctx.far_corners_may_drape` applies; False where
+    it does not."""
+    if not ctx.far_corners_may_drape or ctx.object_size is None:
+        return False
+    return bool(_cloth_on_top(torch.as_tensor(S, dtype=torch.float64), ctx))
 
 
 def _cloth_on_top(S: torch.Tensor, ctx: SafetyContext) -> torch.Tensor:

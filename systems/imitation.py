@@ -8,6 +8,7 @@ import time
 
 import numpy as np
 import torch
+from fabric_imitation.learning.safety import cloth_on_object
 from fabric_imitation.learning.state import (
     PlanarPose,
     corner_indices,
@@ -293,7 +294,7 @@ class StepController(LeafSystem):
                 ("solve_ms", 1),
                 ("iterations", 1),
                 ("retreated", 1),  # lifting steps taken after the release
-                ("memory", 1),  # a subclass's own count (ZeroController)
+                ("memory", 1),  # a subclass's own (ZeroController, MpcController)
             )
         }
         self.DeclarePeriodicDiscreteUpdateEvent(period, offset, self._update)
@@ -372,6 +373,12 @@ class MpcController(StepController):
         return TERMINATED_CLASSIFIER if self._mpc.finished(S, steps) else None
 
     def Decide(self, context, S, pose, steps, progress):
+        # Once seen on the object, the cloth is taken to stay there (the
+        # ``memory`` state): a towel over the plate seen from the front may
+        # show no keypoint on it (SafetyContext.cloth_on_object).
+        on_object = bool(self._get(context, "memory")[0]) or cloth_on_object(
+            S, self._mpc.ctx
+        )
         far = None
         if self._remembered.HasValue(context):
             v = self._remembered.Eval(context)
@@ -384,6 +391,7 @@ class MpcController(StepController):
             previous_progress=progress,
             frame_pose=pose,
             far_corner_alternatives=far,
+            cloth_on_object=on_object,
         )
         if not result.feasible:
             _LOG.warning(
@@ -400,7 +408,13 @@ class MpcController(StepController):
                 "the rule as written",
                 steps,
             )
-        return RUNNING, result.action.numpy(), result.progress, result.iterations
+        return (
+            RUNNING,
+            result.action.numpy(),
+            result.progress,
+            result.iterations,
+            float(on_object),
+        )
 
 
 class ReplayController(StepController):

@@ -15,7 +15,7 @@ from fabric_imitation.diagrams.imitation import (
     ScoreEpisode,
 )
 from fabric_imitation.learning.mpc import MpcResult
-from fabric_imitation.learning.safety import rule_violations
+from fabric_imitation.learning.safety import SafetyContext, rule_violations
 from fabric_imitation.learning.state import PlanarPose, object_to_world
 from fabric_imitation.scenarios.loader import LoadScenario
 from fabric_imitation.systems.imitation import (
@@ -177,12 +177,18 @@ def test_only_the_controllers_rule_2_keeps_the_estimate_margin(box):
 class FixedMpc:
     """Returns one object-frame action; records the frame pose it was given."""
 
-    def __init__(self, action_O, done=False):
+    def __init__(self, action_O, done=False, ctx=None):
         self.action = torch.as_tensor(action_O, dtype=torch.float32)
         self.frames = []
         self.far = []
+        self.on_object = []
         self.done = done
         self.config = types.SimpleNamespace(num_samples=1)
+        self.ctx = ctx or SafetyContext(
+            edge_length=0.3,
+            workspace_lower=np.array([-0.45, -0.45, -0.01]),
+            workspace_upper=np.array([0.45, 0.45, 0.5]),
+        )
 
     def finished(self, S, steps):
         return self.done
@@ -196,9 +202,11 @@ class FixedMpc:
         previous_progress,
         frame_pose=None,
         far_corner_alternatives=None,
+        cloth_on_object=False,
     ):
         self.frames.append(np.array(frame_pose))
         self.far.append(far_corner_alternatives)
+        self.on_object.append(cloth_on_object)
         return MpcResult(self.action, True, 3, 1.0, 7, 0.01)
 
 
@@ -250,6 +258,41 @@ def test_mpc_controller_passes_remembered_far_corners_to_the_rules():
     simulator.AdvanceTo(1.5 * DT)
     np.testing.assert_array_equal(mpc.far[0], far.reshape(2, 3))
     assert mpc.far[1] is None  # NaN: the frame was read right
+
+
+def test_mpc_controller_remembers_the_cloth_seen_on_the_object():
+    """Where rule 2 allows for sides draped over the object, a cloth seen on
+    the object's top once is taken to stay there: a towel over the plate,
+    seen from the front, may show no keypoint on it in later frames."""
+    plate = SafetyContext(
+        edge_length=0.3,
+        workspace_lower=np.array([-0.45, -0.45, -0.01]),
+        workspace_upper=np.array([0.45, 0.45, 0.5]),
+        object_size=np.array([0.17, 0.01, 0.20]),
+        far_corners_may_drape=True,
+    )
+    in_front = flat(-0.45) + [0.0, 0.0, 0.05]
+    on_top = in_front.copy()
+    on_top[5] = [0.0, 0.0, 0.2]  # a keypoint on the plate's top edge
+    for ctx, expected in ((plate, [False, True, True]), (None, [False] * 3)):
+        mpc = FixedMpc(np.zeros(6), ctx=ctx)
+        dut = MpcController(
+            mpc=mpc, num_keypoints=8, period=DT, offset=0.0, step_cap=10
+        )
+        simulator = Simulator(dut)
+        context = simulator.get_mutable_context()
+        dut.GetInputPort("object_pose").FixValue(context, RigidTransform())
+        for k, S in enumerate((in_front, on_top, in_front)):
+            dut.GetInputPort("keypoints").FixValue(context, S.ravel())
+            simulator.AdvanceTo((k + 0.5) * DT)
+        assert mpc.on_object == expected
+        # A new episode (the context reset) forgets it.
+        simulator.get_mutable_context().SetTimeStateAndParametersFrom(
+            dut.CreateDefaultContext()
+        )
+        simulator.Initialize()
+        simulator.AdvanceTo(0.5 * DT)
+        assert mpc.on_object == [*expected, False]
 
 
 def test_mpc_controller_stops_releases_and_lifts_the_grippers_clear():

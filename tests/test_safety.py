@@ -326,6 +326,46 @@ def test_a_side_draped_beyond_the_plates_end_hangs_square_to_its_edge():
     assert not bool(_draped_straight(beside, controller)[1])
 
 
+def test_a_cloth_once_seen_on_the_object_is_judged_as_draped_over_it():
+    """A towel over a plate at the step cap (hang, seed 0, trial 3,
+    sampling seed 1, step 70): seen from the front, f_R puts every keypoint
+    in front of the plate and none on it; the grippers move 1.6 and 2.3 cm
+    towards the plate, 164 and 170 degrees off the true sides. The
+    controller, which saw the towel on the plate in earlier steps
+    (SafetyContext.cloth_on_object), judges the sides as draped over it and
+    refuses the move."""
+    import dataclasses as dc
+
+    import torch
+
+    estimate = np.array(
+        [
+            [-0.118, -0.098, 0.078],  # s1
+            [0.014, -0.064, 0.055],
+            [0.117, -0.102, 0.084],  # s2
+            [0.079, -0.044, 0.145],
+            [0.097, -0.094, 0.084],  # s4, as f_R sees it
+            [-0.003, -0.049, 0.051],
+            [-0.092, -0.093, 0.078],  # s3, as f_R sees it
+            [-0.123, -0.015, 0.147],
+        ]
+    )
+    truth = estimate.copy()
+    truth[6] = [-0.108, 0.002, 0.067]
+    truth[4] = [0.086, 0.027, 0.077]
+    A = torch.tensor([0.0043, 0.0159, 0.0018, -0.0061, 0.0222, -0.0055])
+    cfg = SafetyConfig(tau_d_deg=150.0)  # hang's
+    plate = PLATE
+    controller = dc.replace(plate, far_corners_may_drape=True, direction_margin_deg=5)
+
+    def direction(S, ctx):
+        return bool(rule_violations(torch.as_tensor(S), A, cfg, ctx)["direction"])
+
+    assert direction(truth, plate)
+    assert not direction(estimate, controller)
+    assert direction(estimate, dc.replace(controller, cloth_on_object=True))
+
+
 def test_a_side_hanging_free_below_a_gripper_may_swing():
     """A towel carried 33 cm up behind the plate (hang, seed 2, trial 1,
     step 18): f_R puts the left far corner s3 up by the grippers, the true
