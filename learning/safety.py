@@ -53,7 +53,10 @@ class SafetyConfig:
     # (SafetyContext.far_corners_may_drape; the side laid towards the top's
     # nearest point and square to the face it crosses: hang, seeds 0 / 1 /
     # 2, true rule breaks 0 / 1 / 2 -> 0 / 0 / 1 with the square path,
-    # successes 9 / 10 / 10 both, README). On for `hang` (scenarios.yaml);
+    # successes 9 / 10 / 10 both, README). Once seen on the object, the
+    # cloth is taken to stay there for the episode (MpcController; at
+    # --sampling-seed 1 hang's true rule breaks 2 / 0 / 0 -> 0 / 0 / 0,
+    # README). On for `hang` (scenarios.yaml);
     # off by default: on `box_big` it also refused the moves that carry the
     # cloth onto the box (seed 0: 8 of 10 against 10, one trial stuck with
     # no feasible action while the far corners still trailed behind).
