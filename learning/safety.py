@@ -243,23 +243,18 @@ def rule_violations(
                 | bad_direction(a_l, s1 - s3d, cos_hidden)
                 | bad_direction(a_r, s2 - s4d, cos_hidden)
             )
-        cos_swing = math.cos(
-            math.radians(
-                max(
-                    limit - config.hidden_corner_margin_deg - config.hanging_swing_deg,
-                    0.0,
-                )
-            )
-        )
+        # A side hanging free: its far corner within the swing of straight
+        # below the gripper, so the edge points within it of straight up.
+        swing = limit - config.hidden_corner_margin_deg - config.hanging_swing_deg
+        cos_swing = math.cos(math.radians(max(swing, 0.0)))
         side = ctx.side_length or ctx.edge_length
+        up = torch.tensor([0.0, 0.0, 1.0], dtype=S.dtype)
         for a, g in ((a_l, s1), (a_r, s2)):
-            below = _dropped(g, 1.0, ctx)
-            free = (g[..., 2] - below[..., 2]) >= side
-            plumb = torch.zeros_like(g)
-            plumb[..., 2] = side
-            out["direction"] = out["direction"] | (
-                free & bad_direction(a, plumb, cos_swing)
-            )
+            free = g[..., 2] - _dropped(g, 1.0, ctx)[..., 2] >= side
+            if free.any():  # rarely: the rollouts' grippers are low
+                out["direction"] = out["direction"] | (
+                    free & bad_direction(a, up, cos_swing)
+                )
     if ctx.far_corner_alternatives is not None:
         alt = torch.as_tensor(ctx.far_corner_alternatives, dtype=S.dtype)
         out["direction"] = (
@@ -269,7 +264,7 @@ def rule_violations(
         )
     if ctx.far_corners_may_drape and ctx.object_size is not None:
         on_top = _cloth_on_top(S, ctx) | ctx.cloth_on_object
-        for a, g in ((a_l, s1), (a_r, s2)):
+        for a, g in ((a_l, s1), (a_r, s2)) if on_top.any() else ():
             for path in (_draped, _draped_straight):
                 far, applies = path(g, ctx)
                 out["direction"] = out["direction"] | (
@@ -388,31 +383,13 @@ def _draped(g: torch.Tensor, ctx: SafetyContext) -> tuple[torch.Tensor, torch.Te
     can hold (...): g is outside the top's footprint and the side is long
     enough to get over (the caller also needs cloth on the top,
     `_cloth_on_top`)."""
-    size = torch.as_tensor(ctx.object_size, dtype=g.dtype)
-    hx, hy, h = size[0] / 2, size[1] / 2, size[2]
-    outside = (g[..., 0].abs() > hx) | (g[..., 1].abs() > hy)
-    entry_xy = torch.stack([g[..., 0].clamp(-hx, hx), g[..., 1].clamp(-hy, hy)], -1)
+    half = torch.as_tensor(ctx.object_size[:2], dtype=g.dtype) / 2
+    outside = (g[..., :2].abs() > half).any(-1)
+    entry_xy = torch.maximum(torch.minimum(g[..., :2], half), -half)
     u = entry_xy - g[..., :2]
     n = u.norm(dim=-1, keepdim=True)
-    u = u / n.clamp_min(1e-9)
-    # Across the top: the ray entry + t u leaves the footprint at the
-    # smaller of its two exits.
-    half = torch.stack([hx, hy])
-    moving = u.abs() > 1e-9
-    t_axis = torch.where(
-        moving,
-        (torch.sign(u) * half - entry_xy) / torch.where(moving, u, torch.ones_like(u)),
-        torch.full_like(u, float("inf")),
-    )
-    t = t_axis.min(-1).values.clamp_min(0.0)
-    to_top = torch.cat([entry_xy - g[..., :2], (h - g[..., 2])[..., None]], -1)
-    rest = (ctx.side_length or ctx.edge_length) - to_top.norm(dim=-1) - t
-    exit_xy = entry_xy + t[..., None] * u
-    down = torch.minimum(rest, h).clamp_min(0.0)
-    beyond = (rest - h).clamp_min(0.0)
-    far = torch.cat([exit_xy + beyond[..., None] * u, (h - down)[..., None]], -1)
-    applies = outside & (n[..., 0] > 1e-6) & (rest > 0)
-    return far, applies
+    far, rest = _laid_over(g, entry_xy, u / n.clamp_min(1e-9), ctx)
+    return far, outside & (n[..., 0] > 1e-6) & (rest > 0)
 
 
 def _draped_straight(
@@ -426,43 +403,45 @@ def _draped_straight(
     the rule breaks of seeds 1 and 2 on the true cloth) the true far corner
     lay 1-4 cm beyond the plate's end, where `_draped` puts it at the end,
     15 degrees less off the move."""
-    size = torch.as_tensor(ctx.object_size, dtype=g.dtype)
-    half, h = size[:2], size[2]
-    half = half / 2
+    half = torch.as_tensor(ctx.object_size[:2], dtype=g.dtype) / 2
     gap = g[..., :2].abs() - half  # (..., 2) how far g lies beyond each face
-    across_y = gap[..., 1] >= gap[..., 0]  # crosses a face of constant y
-    margin = torch.as_tensor(DRAPE_MARGIN, dtype=g.dtype)
-    far_xy = []
-    for axis in (0, 1):
-        along = g[..., axis].clamp(-(half[axis] + margin), half[axis] + margin)
-        side = torch.sign(g[..., axis])
-        far_xy.append((along, side, -side * half[axis]))
-    to_top_y = torch.stack(
-        [g[..., 0] - far_xy[0][0], gap[..., 1], h - g[..., 2]], -1
-    ).norm(dim=-1)
-    to_top_x = torch.stack(
-        [gap[..., 0], g[..., 1] - far_xy[1][0], h - g[..., 2]], -1
-    ).norm(dim=-1)
-    to_top = torch.where(across_y, to_top_y, to_top_x)
-    width = torch.where(across_y, 2 * half[1], 2 * half[0])
-    rest = (ctx.side_length or ctx.edge_length) - to_top - width
+    # The crossed axis is the one g lies furthest beyond: 1 (a face of
+    # constant y) or 0.
+    crossed = torch.stack([gap[..., 0] > gap[..., 1], gap[..., 1] >= gap[..., 0]], -1)
+    reach = half + DRAPE_MARGIN
+    along = torch.maximum(torch.minimum(g[..., :2], reach), -reach)
+    side = torch.sign(g[..., :2])
+    entry_xy = torch.where(crossed, side * half, along)
+    u = torch.where(crossed, -side, torch.zeros_like(side))
+    far, rest = _laid_over(g, entry_xy, u, ctx)
+    return far, (gap.max(-1).values > 0) & (rest > 0)
+
+
+def _laid_over(
+    g: torch.Tensor, entry_xy: torch.Tensor, u: torch.Tensor, ctx: SafetyContext
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """The far corner (..., 3) of a side grasped at g that reaches the top
+    face's edge at entry_xy, runs across the top along the unit direction u
+    (..., 2) and down the far face by what is left of its length, then out
+    over the table; and that length left once across the top (...)."""
+    size = torch.as_tensor(ctx.object_size, dtype=g.dtype)
+    half, h = size[:2] / 2, size[2]
+    # Across the top: the ray entry + t u leaves the footprint at the
+    # smaller of its two exits.
+    moving = u.abs() > 1e-9
+    t_axis = torch.where(
+        moving,
+        (torch.sign(u) * half - entry_xy) / torch.where(moving, u, torch.ones_like(u)),
+        torch.full_like(u, float("inf")),
+    )
+    t = t_axis.min(-1).values.clamp_min(0.0)
+    to_top = torch.cat([entry_xy - g[..., :2], (h - g[..., 2])[..., None]], -1)
+    rest = (ctx.side_length or ctx.edge_length) - to_top.norm(dim=-1) - t
+    exit_xy = entry_xy + t[..., None] * u
     down = torch.minimum(rest, h).clamp_min(0.0)
     beyond = (rest - h).clamp_min(0.0)
-    # The far face lies opposite g; beyond it the side goes on over the table.
-    x_when_y = far_xy[0][0]
-    y_when_y = far_xy[1][2] - far_xy[1][1] * beyond
-    x_when_x = far_xy[0][2] - far_xy[0][1] * beyond
-    y_when_x = far_xy[1][0]
-    far = torch.stack(
-        [
-            torch.where(across_y, x_when_y, x_when_x),
-            torch.where(across_y, y_when_y, y_when_x),
-            h - down,
-        ],
-        -1,
-    )
-    applies = (torch.maximum(gap[..., 0], gap[..., 1]) > 0) & (rest > 0)
-    return far, applies
+    far = torch.cat([exit_xy + beyond[..., None] * u, (h - down)[..., None]], -1)
+    return far, rest
 
 
 def valid_actions(
