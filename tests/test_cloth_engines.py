@@ -75,16 +75,17 @@ def test_runaway_cloth_is_a_clear_error_naming_the_engine_and_time():
 
 
 @pytest.mark.slow
-def test_vbd_cloth_drapes_over_the_box_and_fem_stands_out_further():
-    """The scripted cover on a coarse cloth: the VBD cloth covers the box and
-    its free parts fall closer to the box sides than the FEM slab's."""
+def test_vbd_cloth_drapes_over_the_box_within_3_cm_and_fem_stands_out_further():
+    """The scripted cover on the shipped `box` cloth: the VBD cloth covers the
+    box and no part of it more than 3 cm up reaches more than 3 cm beyond the
+    box's footprint (the cloth-likeness goal); the FEM slab, even coarser,
+    stands out further."""
     reach, sides = {}, {}
-    for engine in ("vbd", "fem"):
-        scenario = LoadScenario(
-            scenario_name="box",
-            scenario_text=f"cloth: {{engine: {engine}, resolution: [11, 11, 2], "
-            "vbd: {resolution: [11, 11]}}",
-        )
+    for engine, text in (
+        ("vbd", "cloth: {engine: vbd}"),
+        ("fem", "cloth: {engine: fem, resolution: [11, 11, 2]}"),
+    ):
+        scenario = LoadScenario(scenario_name="box", scenario_text=text)
         plan = ScriptedDemoPlan(scenario)
         done = OpenLoopRun(
             scenario, actions=plan.actions, release_step=plan.release_step
@@ -93,10 +94,10 @@ def test_vbd_cloth_drapes_over_the_box_and_fem_stands_out_further():
         assert done.success.success, (engine, done.success.details)
         reach[engine] = DrapeReach(scenario, done.final.positions_W)
         sides[engine] = SideFlapReach(scenario, done.final.positions_W)
-    assert reach["vbd"] <= 0.06, reach
+    assert reach["vbd"] <= 0.03, reach
     assert reach["vbd"] < reach["fem"] - 0.01, reach
-    # Off the back corners' wings the vbd flaps hang within 3 cm of the box.
-    assert max(sides["vbd"]) <= 0.03, sides
+    # Off the back corners the vbd flaps hang within 1.5 cm of the box.
+    assert max(sides["vbd"]) <= 0.015, sides
 
 
 @pytest.mark.parametrize(
