@@ -155,11 +155,13 @@ def BenchScenario(
     engine: str = "vbd",
     flat_seconds: float = 1.0,
     draped_seconds: float = 1.5,
+    drapes: list | None = None,
 ) -> dict:
     """Real-time factors of one scenario on one engine in three phases:
     flat (lying on the table, grippers still), moving (the scripted task
     motion, or a 36 cm lift in the prior scene) and draped (after release:
-    over the box or the plate; the prior cloth hanging from the grippers)."""
+    over the box or the plate; the prior cloth hanging from the grippers).
+    A box cover's settled cloth is appended to `drapes` (for DrapePlot)."""
     scenario = LoadScenario(
         scenario_name=name, scenario_text=f"cloth: {{engine: {engine}}}"
     )
@@ -200,6 +202,15 @@ def BenchScenario(
             "left_right": round(sides, 4),
             "front_back": round(ends, 4),
         }
+        if drapes is not None:
+            drapes.append(
+                {
+                    "label": f"{name} on {engine}",
+                    "scenario": scenario,
+                    "positions_W": run.capture_positions(),
+                    "reach": draped["drape_reach_m"],
+                }
+            )
     return {
         "scenario": name,
         "engine": engine,
@@ -219,24 +230,91 @@ def BenchSim(
     out: Path | None = None,
     progress: bool = True,
 ) -> dict:
-    """Runs BenchScenario for each scenario and engine, pinned to one core."""
+    """Runs BenchScenario for each scenario and engine, pinned to one core.
+    With `out`, the JSON goes there and the settled box covers, seen from the
+    front, the side and above, to `out` with the suffix .png (DrapePlot)."""
     if hasattr(os, "sched_setaffinity"):
         os.sched_setaffinity(0, {sorted(os.sched_getaffinity(0))[0]})
     os.environ["OMP_NUM_THREADS"] = "1"
-    results = []
+    results, drapes = [], []
     for name in scenario_names or DEFAULT_SCENARIOS:
         for engine in engines:
             if progress:
                 print(f"bench sim: {name} on {engine}", file=sys.stderr, flush=True)
             results.append(
-                BenchScenario(name, engine=engine, flat_seconds=flat_seconds)
+                BenchScenario(
+                    name, engine=engine, flat_seconds=flat_seconds, drapes=drapes
+                )
             )
             if out is not None:  # partial results survive an interrupted run
                 _write(out, _sim_summary(results))
     summary = _sim_summary(results)
     if out is not None:
         _write(out, summary)
+        if drapes:
+            DrapePlot(drapes, Path(out).with_suffix(".png"))
     return summary
+
+
+def DrapePlot(drapes: list[dict], path: Path) -> None:
+    """Settled box covers, one row each (dicts with `label`, `scenario`,
+    `positions_W`, `reach`), seen from the front (x-z), the side (y-z) and
+    above (x-y) in the box's frame: cloth vertices coloured by height, the
+    box outlined, the reach figure's bounds dashed (3 cm up; 3 cm around the
+    footprint) and the vertex that sets the figure crossed. Written
+    atomically."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    from matplotlib.patches import FancyBboxPatch, Rectangle
+
+    views = ((0, 2, "front (x-z)"), (1, 2, "side (y-z)"), (0, 1, "above (x-y)"))
+    fig, axes = plt.subplots(
+        len(drapes), 3, figsize=(13, 3.4 * len(drapes)), squeeze=False
+    )
+    for row, d in zip(axes, drapes, strict=True):
+        scenario = d["scenario"]
+        pose = scenario.object.pose
+        p_O = world_to_object(
+            d["positions_W"], np.array([pose[0], pose[1], yaw_rad(pose)])
+        )
+        size = np.array(scenario.object.size)
+        half = size[:2] / 2
+        beyond = np.linalg.norm(np.maximum(np.abs(p_O[:, :2]) - half, 0), axis=1)
+        beyond[p_O[:, 2] <= 0.03] = 0.0
+        k = int(np.argmax(beyond))
+        for ax, (u, v, title) in zip(row, views, strict=True):
+            ax.scatter(p_O[:, u], p_O[:, v], s=2, c=p_O[:, 2], cmap="viridis")
+            if v == 2:
+                ax.add_patch(Rectangle((-half[u], 0), size[u], size[2], fill=False))
+                ax.axhline(0.03, color="r", ls="--", lw=0.6)
+                for x in (-half[u] - 0.03, half[u] + 0.03):
+                    ax.axvline(x, color="r", ls="--", lw=0.6)
+            else:
+                ax.add_patch(Rectangle(tuple(-half), *size[:2], fill=False))
+                ax.add_patch(
+                    FancyBboxPatch(
+                        tuple(-half),
+                        *size[:2],
+                        boxstyle="round,pad=0.03",
+                        fill=False,
+                        ec="r",
+                        ls="--",
+                        lw=0.6,
+                    )
+                )
+            if beyond[k] > 0:
+                ax.plot(p_O[k, u], p_O[k, v], "rx", ms=8)
+            ax.set_aspect("equal")
+            ax.grid(alpha=0.3)
+            ax.set_title(f"{d['label']}: {title}", fontsize=8)
+        row[0].set_ylabel(f"reach {100 * d['reach']:.1f} cm")
+    fig.tight_layout()
+    tmp = Path(path).with_suffix(".tmp.png")
+    fig.savefig(tmp, dpi=90)
+    plt.close(fig)
+    tmp.replace(path)
 
 
 def _sim_summary(results: list) -> dict:

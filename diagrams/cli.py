@@ -549,7 +549,7 @@ def _add_bench_sim(p):
         "--scenarios",
         nargs="+",
         default=None,
-        help="scenario names (default: prior box hang box_big)",
+        help="scenario names (default: prior box hang box_big box_panda hang_panda)",
     )
     p.add_argument(
         "--engines",
@@ -564,7 +564,13 @@ def _add_bench_sim(p):
         default=1.0,
         help="simulated seconds of the flat phase",
     )
-    p.add_argument("--out", type=Path, default=None, help="also write the JSON here")
+    p.add_argument(
+        "--out",
+        type=Path,
+        default=None,
+        help="also write the JSON here, and the settled box covers (front, "
+        "side and top views) to the same name with .png",
+    )
 
 
 @command("bench sim")(_add_bench_sim)

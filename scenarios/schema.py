@@ -50,7 +50,9 @@ class VbdConfig:
     # and `cloth.positions` see has the same grid, two layers). 16 x 16 is
     # the paper's 256 vertices (2 cm apart on the 30 cm cloth): the newton
     # step costs 7.5 ms CPU per 10 ms there against 13.4 ms at 21 x 21, and
-    # every scripted demo succeeds at both (bench sim, README).
+    # every scripted demo succeeds at both (bench sim, README). `box` (and
+    # its variants) use 21 x 21 checkerboard for the cover's drape
+    # (scenarios.yaml).
     resolution: list[int] = dc.field(default_factory=lambda: [16, 16])
     # How the sheet's grid cells are split into two triangles: "uniform"
     # (every cell along the same diagonal) or "checkerboard" (the diagonals

@@ -3,9 +3,10 @@ determinism, context semantics, divergence, draping, and one-line errors for
 bad engine settings. Behaviour shared with the FEM engine is tested on both
 in test_station.py."""
 
+import cv2
 import numpy as np
 import pytest
-from fabric_imitation.diagrams.bench import DrapeReach, SideFlapReach
+from fabric_imitation.diagrams.bench import DrapePlot, DrapeReach, SideFlapReach
 from fabric_imitation.diagrams.cloth_mesh import TopTriangles
 from fabric_imitation.diagrams.demos import ScriptedDemoPlan
 from fabric_imitation.diagrams.simulation import OpenLoopRun, SimulationDivergedError
@@ -75,12 +76,14 @@ def test_runaway_cloth_is_a_clear_error_naming_the_engine_and_time():
 
 
 @pytest.mark.slow
-def test_vbd_cloth_drapes_over_the_box_within_3_cm_and_fem_stands_out_further():
+def test_vbd_cloth_drapes_over_the_box_within_3_cm_and_fem_stands_out_further(
+    tmp_path,
+):
     """The scripted cover on the shipped `box` cloth: the VBD cloth covers the
     box and no part of it more than 3 cm up reaches more than 3 cm beyond the
     box's footprint (the cloth-likeness goal); the FEM slab, even coarser,
-    stands out further."""
-    reach, sides = {}, {}
+    stands out further. `bench sim`'s picture of the two covers is drawn."""
+    reach, sides, drapes = {}, {}, []
     for engine, text in (
         ("vbd", "cloth: {engine: vbd}"),
         ("fem", "cloth: {engine: fem, resolution: [11, 11, 2]}"),
@@ -94,6 +97,18 @@ def test_vbd_cloth_drapes_over_the_box_within_3_cm_and_fem_stands_out_further():
         assert done.success.success, (engine, done.success.details)
         reach[engine] = DrapeReach(scenario, done.final.positions_W)
         sides[engine] = SideFlapReach(scenario, done.final.positions_W)
+        drapes.append(
+            {
+                "label": f"box on {engine}",
+                "scenario": scenario,
+                "positions_W": done.final.positions_W,
+                "reach": reach[engine],
+            }
+        )
+    DrapePlot(drapes, tmp_path / "sim.png")
+    image = cv2.imread(str(tmp_path / "sim.png"))
+    assert image is not None and image.shape[0] > 300 and image.shape[1] > 900
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["sim.png"]
     assert reach["vbd"] <= 0.03, reach
     assert reach["vbd"] < reach["fem"] - 0.01, reach
     # Off the back corners the vbd flaps hang within 1.5 cm of the box.
