@@ -44,8 +44,7 @@ def _checks(
     out = {"deepest_below_table_mm": round(1000 * max(below, 0.0), 2)}
     ok = below <= PENETRATION_TOLERANCE
     if scenario.object.kind != "none":
-        pose = scenario.object.pose
-        p_O = world_to_object(P, np.array([pose[0], pose[1], yaw_rad(pose)]))
+        p_O = _in_box_frame(scenario, P)
         half = np.array(scenario.object.size) / 2
         depth = np.minimum.reduce(
             [
@@ -115,17 +114,24 @@ def _grid(t0: float, seconds: float, every: float = 0.05) -> list[float]:
     return [t0 + (k + 1) * seconds / n for k in range(n)]
 
 
+def _in_box_frame(scenario: Scenario, positions_W: np.ndarray) -> np.ndarray:
+    pose = scenario.object.pose
+    return world_to_object(positions_W, np.array([pose[0], pose[1], yaw_rad(pose)]))
+
+
+def _reach_distances(scenario: Scenario, p_O: np.ndarray) -> np.ndarray:
+    """Per vertex (box frame): its horizontal distance [m] beyond the box's
+    footprint if it is more than 3 cm above the table, else 0."""
+    out = np.maximum(np.abs(p_O[:, :2]) - np.array(scenario.object.size[:2]) / 2, 0)
+    return np.where(p_O[:, 2] > 0.03, np.linalg.norm(out, axis=1), 0.0)
+
+
 def DrapeReach(scenario: Scenario, positions_W: np.ndarray) -> float:
     """Cloth-likeness of a cover: the furthest horizontal distance [m] beyond
     the box's footprint reached by cloth points more than 3 cm above the
     table (a cloth hangs down the sides; a card-like one stands out)."""
-    pose = scenario.object.pose
-    p_O = world_to_object(positions_W, np.array([pose[0], pose[1], yaw_rad(pose)]))
-    high = p_O[:, 2] > 0.03
-    if not high.any():
-        return 0.0
-    out = np.maximum(np.abs(p_O[high, :2]) - np.array(scenario.object.size[:2]) / 2, 0)
-    return float(np.linalg.norm(out, axis=1).max())
+    p_O = _in_box_frame(scenario, positions_W)
+    return float(_reach_distances(scenario, p_O).max(initial=0.0))
 
 
 def SideFlapReach(
@@ -136,8 +142,7 @@ def SideFlapReach(
     left out): (beyond the left / right sides, beyond the front / back)
     [m]. At the back corners a cloth pulled from behind rises from the
     table as a sloping wing, which DrapeReach's maximum picks up."""
-    pose = scenario.object.pose
-    p_O = world_to_object(positions_W, np.array([pose[0], pose[1], yaw_rad(pose)]))
+    p_O = _in_box_frame(scenario, positions_W)
     half = np.array(scenario.object.size[:2]) / 2
     high = p_O[:, 2] > 0.03
     out = np.maximum(np.abs(p_O[:, :2]) - half, 0)
@@ -185,19 +190,16 @@ def BenchScenario(
     t_end = max(t_end, run.context.get_time()) + 0.1
     run.advance_to(t_end)
     draped = _measure(run, _grid(t_end, draped_seconds), scenario)
+    settled = run.capture_positions()
     if scenario.task != "prior":
-        report = TaskSuccess(
-            scenario, run.capture_positions(), run.station.mesh.top_layer
-        )
+        report = TaskSuccess(scenario, settled, run.station.mesh.top_layer)
         draped["task_success"] = bool(report.success)
         draped["physically_ok"] = draped["physically_ok"] and (
             scenario.task != "hang" or report.success
         )
     if scenario.task == "box":
-        draped["drape_reach_m"] = round(
-            DrapeReach(scenario, run.capture_positions()), 4
-        )
-        sides, ends = SideFlapReach(scenario, run.capture_positions())
+        draped["drape_reach_m"] = round(DrapeReach(scenario, settled), 4)
+        sides, ends = SideFlapReach(scenario, settled)
         draped["side_flap_reach_m"] = {
             "left_right": round(sides, 4),
             "front_back": round(ends, 4),
@@ -207,7 +209,7 @@ def BenchScenario(
                 {
                     "label": f"{name} on {engine}",
                     "scenario": scenario,
-                    "positions_W": run.capture_positions(),
+                    "positions_W": settled,
                     "reach": draped["drape_reach_m"],
                 }
             )
@@ -275,14 +277,10 @@ def DrapePlot(drapes: list[dict], path: Path) -> None:
     )
     for row, d in zip(axes, drapes, strict=True):
         scenario = d["scenario"]
-        pose = scenario.object.pose
-        p_O = world_to_object(
-            d["positions_W"], np.array([pose[0], pose[1], yaw_rad(pose)])
-        )
+        p_O = _in_box_frame(scenario, d["positions_W"])
         size = np.array(scenario.object.size)
         half = size[:2] / 2
-        beyond = np.linalg.norm(np.maximum(np.abs(p_O[:, :2]) - half, 0), axis=1)
-        beyond[p_O[:, 2] <= 0.03] = 0.0
+        beyond = _reach_distances(scenario, p_O)
         k = int(np.argmax(beyond))
         for ax, (u, v, title) in zip(row, views, strict=True):
             ax.scatter(p_O[:, u], p_O[:, v], s=2, c=p_O[:, 2], cmap="viridis")

@@ -141,6 +141,14 @@ PLATE = SafetyContext(
 )
 
 
+def _breaks_direction(S, A, cfg: SafetyConfig, ctx: SafetyContext) -> bool:
+    """Rule 2 (direction) on one recorded state S (8, 3) and action A (6,)."""
+    import torch
+
+    out = rule_violations(torch.as_tensor(S), torch.as_tensor(A), cfg, ctx)
+    return bool(out["direction"])
+
+
 def test_a_side_draped_over_the_object_hides_its_far_corner():
     """A towel over a plate (hang, seed 0, trial 0, step 36): f_R puts the
     left far corner s3 by the grasped edge, the true one hangs down the
@@ -170,10 +178,7 @@ def test_a_side_draped_over_the_object_hides_its_far_corner():
     draped = dc.replace(plate, far_corners_may_drape=True)
 
     def direction(S, ctx):
-        import torch
-
-        out = rule_violations(torch.as_tensor(S), torch.as_tensor(A), cfg, ctx)
-        return bool(out["direction"])
+        return _breaks_direction(S, A, cfg, ctx)
 
     assert direction(truth, plate)
     assert not direction(estimate, plate)
@@ -220,7 +225,7 @@ def test_a_towel_across_the_plate_is_draped_over_it():
     draped = dc.replace(plate, far_corners_may_drape=True)
 
     def direction(S, ctx):
-        return bool(rule_violations(torch.as_tensor(S), A, cfg, ctx)["direction"])
+        return _breaks_direction(S, A, cfg, ctx)
 
     assert direction(truth, plate)
     assert not direction(estimate, plate)
@@ -263,7 +268,7 @@ def test_a_hidden_corner_is_judged_with_a_margin():
 
     def direction(S, ctx, margin):
         cfg = SafetyConfig(tau_d_deg=150.0, hidden_corner_margin_deg=margin)
-        return bool(rule_violations(torch.as_tensor(S), A, cfg, ctx)["direction"])
+        return _breaks_direction(S, A, cfg, ctx)
 
     assert direction(truth, plate, 0.0)
     assert not direction(estimate, plate, 10.0)  # as seen: no margin
@@ -308,7 +313,7 @@ def test_a_side_draped_beyond_the_plates_end_hangs_square_to_its_edge():
     controller = dc.replace(plate, far_corners_may_drape=True, direction_margin_deg=5)
 
     def direction(S, ctx):
-        return bool(rule_violations(torch.as_tensor(S), A, cfg, ctx)["direction"])
+        return _breaks_direction(S, A, cfg, ctx)
 
     assert direction(truth, plate)
     assert not direction(estimate, dc.replace(plate, direction_margin_deg=5))
@@ -359,7 +364,7 @@ def test_a_cloth_once_seen_on_the_object_is_judged_as_draped_over_it():
     controller = dc.replace(plate, far_corners_may_drape=True, direction_margin_deg=5)
 
     def direction(S, ctx):
-        return bool(rule_violations(torch.as_tensor(S), A, cfg, ctx)["direction"])
+        return _breaks_direction(S, A, cfg, ctx)
 
     assert direction(truth, plate)
     assert not direction(estimate, controller)
@@ -398,7 +403,7 @@ def test_a_side_hanging_free_below_a_gripper_may_swing():
 
     def direction(S, ctx, swing=10.0):
         cfg = SafetyConfig(tau_d_deg=150.0, hanging_swing_deg=swing)
-        return bool(rule_violations(torch.as_tensor(S), A, cfg, ctx)["direction"])
+        return _breaks_direction(S, A, cfg, ctx)
 
     assert direction(truth, plate)
     assert direction(estimate, controller)
