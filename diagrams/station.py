@@ -30,6 +30,12 @@ import numpy as np
 from fabric_imitation.diagrams.cloth_mesh import ClothMesh, MakeClothMesh, TopTriangles
 from fabric_imitation.learning.errors import InputError
 from fabric_imitation.scenarios.schema import Scenario, yaw_rad
+from fabric_imitation.systems.gripper_contact import (
+    GripperBody,
+    GripperObjectContact,
+    PandaHandCapsules,
+    PandaLinkCapsules,
+)
 from fabric_imitation.systems.station_parts import (
     ClothGroundTruth,
     FabricMask,
@@ -40,7 +46,10 @@ from pydrake.common.value import AbstractValue
 from pydrake.geometry import (
     AddContactMaterial,
     Box,
+    Capsule,
+    CollisionFilterDeclaration,
     GeometryInstance,
+    GeometrySet,
     InMemoryMesh,
     MakePhongIllustrationProperties,
     MakeRenderEngineVtk,
@@ -105,6 +114,9 @@ class StationPorts:
     CLOTH_POSITIONS = "cloth.positions"
     CLOTH_KEYPOINTS = "cloth.keypoints"
     PEOPLE_RGB = "camera.people_rgb_image"  # only with people_camera=True
+    # Simulation only, with a task object: gripper-object contact so far
+    # (GripperObjectContact's ``contact``: plant steps, first time, depth).
+    GRIPPER_OBJECT_CONTACT = "grippers.object_contact"
     # Only with raw_camera_scale: the control camera's view at that many
     # times its resolution, as an RGB-D camera driver gives it.
     RAW_RGB = "camera.raw_rgb_image"
@@ -164,9 +176,22 @@ def GraspCorners(scenario: Scenario) -> dict[str, np.ndarray]:
     }
 
 
-def _friction_props(mu: float) -> ProximityProperties:
+# Point-contact stiffness [N/m] of the rigid geometry the grippers meet (the
+# table, the task object and the anchors' hands): a hand pushed against the
+# object by its full actuator force (kp x 5 cm, 150 N) sinks about 0.3 mm in,
+# where the plant's default stiffness let it sink 7 mm.
+RIGID_POINT_STIFFNESS = 1e6
+
+
+def _friction_props(
+    mu: float, point_stiffness: float | None = None
+) -> ProximityProperties:
     props = ProximityProperties()
-    AddContactMaterial(friction=CoulombFriction(mu, mu), properties=props)
+    AddContactMaterial(
+        friction=CoulombFriction(mu, mu),
+        point_stiffness=point_stiffness,
+        properties=props,
+    )
     return props
 
 
@@ -310,7 +335,9 @@ def _add_hands(plant: MultibodyPlant, holders: dict, X_holder_clip: dict) -> Non
 
 def _register_box(plant, body, X_BG, size, name, mu, color: Rgba, label: int) -> None:
     shape = Box(*size)
-    plant.RegisterCollisionGeometry(body, X_BG, shape, name, _friction_props(mu))
+    plant.RegisterCollisionGeometry(
+        body, X_BG, shape, name, _friction_props(mu, RIGID_POINT_STIFFNESS)
+    )
     instance = GeometryInstance(X_BG, shape, name)
     instance.set_illustration_properties(MakePhongIllustrationProperties(color.rgba))
     instance.set_perception_properties(_perception(color, label))
@@ -482,8 +509,87 @@ def _add_anchor(plant: MultibodyPlant, scenario: Scenario, side: str, p_W0: np.n
     plant.RegisterVisualGeometry(
         anchor, RigidTransform(), Sphere(0.012), f"{side}_anchor", [0.2, 0.2, 0.2, 1.0]
     )
+    # Collision role only (the cameras see what they saw before): a Franka
+    # hand holding the corner from above, so the table and the task object
+    # stop the anchor as they would stop the hand.
+    for k, capsule in enumerate(ANCHOR_CAPSULES):
+        a, b = np.array(capsule.p_a), np.array(capsule.p_b)
+        X_AG = RigidTransform(
+            ANCHOR_HAND_YAW @ RotationMatrix.MakeFromOneVector(b - a, 2),
+            ANCHOR_HAND_YAW @ ((a + b) / 2),
+        )
+        plant.RegisterCollisionGeometry(
+            anchor,
+            X_AG,
+            Capsule(capsule.radius, float(np.linalg.norm(b - a))),
+            f"{side}_hand_{k}",
+            _friction_props(0.5, RIGID_POINT_STIFFNESS),
+        )
     plant.gravity_field().set_enabled(instance, False)
     return instance, anchor
+
+
+# The anchors' hands: the grasp frame of PandaHandCapsules turned so the
+# fingers close along the world's diagonal, as the station's Panda hands do
+# (panda.HandOrientation at the default base yaw of 90 degrees).
+ANCHOR_CAPSULES = PandaHandCapsules()
+ANCHOR_HAND_YAW = RotationMatrix.MakeZRotation(np.pi / 4)
+
+
+def _gripper_bodies(plant: MultibodyPlant, scenario: Scenario) -> list[GripperBody]:
+    """The plant bodies that make up the grippers, with their capsules."""
+    if scenario.grippers.kind == "panda":
+        return [
+            GripperBody(
+                int(plant.GetBodyByName(link, instance).index()), capsules, link
+            )
+            for instance in (
+                plant.GetModelInstanceByName(f"{side}_panda") for side in SIDES
+            )
+            for link, capsules in PandaLinkCapsules().items()
+        ]
+    yawed = tuple(
+        type(c)(
+            tuple(ANCHOR_HAND_YAW @ np.array(c.p_a)),
+            tuple(ANCHOR_HAND_YAW @ np.array(c.p_b)),
+            c.radius,
+        )
+        for c in ANCHOR_CAPSULES
+    )
+    return [
+        GripperBody(
+            int(
+                plant.GetBodyByName(
+                    "anchor", plant.GetModelInstanceByName(f"{side}_anchor")
+                ).index()
+            ),
+            yawed,
+            f"{side}_anchor",
+        )
+        for side in SIDES
+    ]
+
+
+def _filter_anchor_collisions(plant: MultibodyPlant, scene_graph, cloth_id) -> None:
+    """The anchors' hands touch the table and the task object only: not each
+    other, and not the FEM cloth they hold (the grasp is a weld)."""
+    hands = GeometrySet(
+        [
+            g
+            for side in SIDES
+            for g in plant.GetCollisionGeometriesForBody(
+                plant.GetBodyByName(
+                    "anchor", plant.GetModelInstanceByName(f"{side}_anchor")
+                )
+            )
+        ]
+    )
+    declaration = CollisionFilterDeclaration().ExcludeWithin(hands)
+    if cloth_id is not None:
+        declaration.ExcludeBetween(
+            hands, GeometrySet(plant.deformable_model().GetGeometryId(cloth_id))
+        )
+    scene_graph.collision_filter_manager().Apply(declaration)
 
 
 def _add_clip(
@@ -612,6 +718,24 @@ def MakeClothStation(
         weld_ids.append(weld_id)
         clips.append(clip)
     plant.Finalize()
+    if scenario.grippers.kind != "panda":
+        _filter_anchor_collisions(plant, scene_graph, cloth_id if fem else None)
+    if scenario.object.kind != "none":
+        contact = builder.AddNamedSystem(
+            "gripper_object_contact",
+            GripperObjectContact(
+                grippers=_gripper_bodies(plant, scenario),
+                X_WO=X_WO,
+                object_size=np.array(scenario.object.size, float),
+                period=dt,
+            ),
+        )
+        builder.Connect(
+            plant.get_body_poses_output_port(), contact.GetInputPort("body_poses")
+        )
+        builder.ExportOutput(
+            contact.GetOutputPort("contact"), StationPorts.GRIPPER_OBJECT_CONTACT
+        )
 
     initialize = None
     if scenario.grippers.kind == "panda":
