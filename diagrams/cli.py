@@ -60,6 +60,9 @@ DESCRIPTIONS = {
     "bench mpc": "MPC control-step latency, idle and with one core loaded.",
     "bench occlusion": "f_R's keypoint error as more of the fabric is hidden "
     "(grippers, partial masks), on the shipped demos' frames.",
+    "report": "Build the evaluation's tables and figures (success with Wilson "
+    "intervals, paired comparisons against ours, stop against count) from "
+    "evaluate's trial lines.",
 }
 
 
@@ -434,6 +437,18 @@ def _add_imitate(p):
         default=None,
         help="LCM bus for --hardware (default: the scenario's grippers.panda.lcm_url)",
     )
+    _on_violation_flag(p)
+
+
+def _on_violation_flag(p) -> None:
+    p.add_argument(
+        "--on-violation",
+        default="stop",
+        help="stop (default): in simulation an episode ends as a failure at "
+        "the first executed action that breaks a rule of the task's referee "
+        "on the true cloth, or at the first gripper-object contact; count: "
+        "the episode goes on and the breaks are only counted",
+    )
 
 
 @command("imitate")(_add_imitate)
@@ -466,6 +481,7 @@ def _imitate(args) -> dict:
         seed=args.seed,
         hardware=args.hardware,
         lcm=lcm,
+        on_violation=args.on_violation,
     )
 
 
@@ -522,6 +538,7 @@ def _add_evaluate(p):
         default="",
         help='YAML overrides for every scenario, e.g. "cloth: {engine: fem}"',
     )
+    _on_violation_flag(p)
 
 
 @command("evaluate")(_add_evaluate)
@@ -541,6 +558,7 @@ def _evaluate(args) -> dict:
         protocol=args.protocol,
         executor=args.executor,
         sampling_seed=args.sampling_seed,
+        on_violation=args.on_violation,
     )
 
 
@@ -656,6 +674,29 @@ def _bench_occlusion(args) -> dict:
     from fabric_imitation.diagrams.bench import BenchOcclusion
 
     return BenchOcclusion(priors_dir=args.priors, out=args.out, seed=args.seed)
+
+
+def _add_report(p):
+    p.add_argument(
+        "runs",
+        nargs="+",
+        type=Path,
+        help="JSON-lines files of trials written by `fabric-imitate evaluate`",
+    )
+    p.add_argument(
+        "--out",
+        type=Path,
+        required=True,
+        help="Markdown file to write; one figure per table beside it, "
+        "<out stem>_<protocol>_<on_violation>.png",
+    )
+
+
+@command("report")(_add_report)
+def _report(args) -> dict:
+    from fabric_imitation.diagrams.report import Report
+
+    return Report(runs=args.runs, out=args.out)
 
 
 def _CheckArgs(args) -> None:

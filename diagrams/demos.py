@@ -14,6 +14,7 @@ from fabric_imitation.diagrams.station import GraspCorners
 from fabric_imitation.learning.errors import InputError
 from fabric_imitation.learning.state import object_to_world
 from fabric_imitation.scenarios.schema import Scenario, yaw_rad
+from fabric_imitation.systems.gripper_contact import PandaHandCapsules
 
 
 @dc.dataclass
@@ -43,12 +44,33 @@ def _cover_waypoints(scenario: Scenario, start: np.ndarray) -> list[np.ndarray]:
     w = 0.45 * scenario.cloth.size[0]
     lift = start.copy()
     lift[:, 2] = sz + 0.06
+    # The hand above the fingers must not come down on the box's top edge,
+    # whichever way the box is turned under it.
+    lowest = max(0.015, sz + HAND_CLEARANCE - HandHeight())
     return [
         lift,
         _pair(scenario, w, sy / 2 + 0.05, sz + 0.08),
         _pair(scenario, w, -sy / 2 - 0.02, sz + 0.06),
-        _pair(scenario, w, -sy / 2 - 0.035, 0.015),
+        _pair(scenario, w, -sy / 2 - 0.035, lowest),
     ]
+
+
+# How far [m] above the object's top the hand itself (not its fingers)
+# stays when a scripted demo lowers the grasped edge beside the object.
+HAND_CLEARANCE = 0.005
+
+
+def HandReach() -> float:
+    """Horizontal reach [m] of the gripper hand from the grasped point."""
+    hand = PandaHandCapsules()[0]
+    return float(np.hypot(*hand.p_a[:2])) + hand.radius
+
+
+def HandHeight() -> float:
+    """Height [m] of the gripper hand's lowest point above the grasped point
+    (the hand's capsule, not the fingers that hold the cloth)."""
+    hand = PandaHandCapsules()[0]
+    return min(hand.p_a[2], hand.p_b[2]) - hand.radius
 
 
 # Angles [deg] from straight up of the arc that lowers the grasped edge
@@ -76,9 +98,13 @@ def _hang_waypoints(scenario: Scenario, start: np.ndarray) -> list[np.ndarray]:
     lift = start.copy()
     lift[:, 2] = high
     r = high - sz
+    # The arc ends where the hand, turned any way about the vertical, stays
+    # HAND_CLEARANCE in front of the plate.
+    reach = HandReach() + HAND_CLEARANCE
+    last = 180.0 - math.degrees(math.asin(min(reach / r, 1.0)))
     arc = [
         _pair(scenario, w, -sy / 2 - r * math.sin(a), sz + r * math.cos(a))
-        for a in np.radians(HANG_ARC_DEG)
+        for a in np.radians([*HANG_ARC_DEG[:-1], min(HANG_ARC_DEG[-1], last)])
     ]
     return [
         lift,

@@ -7,6 +7,7 @@ interrupted evaluation resumes where it stopped.
 """
 
 import dataclasses as dc
+import hashlib
 import json
 import math
 import os
@@ -15,6 +16,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+from fabric_imitation.diagrams.station import CheckGrippersClear
 from fabric_imitation.learning.errors import InputError
 
 # Method -> (controller of MakeImitationDiagram, changes to the scenario's
@@ -30,12 +32,13 @@ METHODS = {
     "zero": ("zero", {}),
     "cfm": ("cfm", {}),
     "tcn": ("tcn", {}),
+    "tcn_mpc": ("tcn_mpc", {}),  # TCN's reward on our planner, safe set and prior
     # Replay: the demo's grasped-corner path (f_R on its frames) followed in
     # the object frame of the trial; no learning beyond f_R.
     "replay": ("replay", {}),
     "scripted": (None, {}),  # the scripted demonstration at the trial's pose
 }
-BASELINE_METHODS = ("zero", "cfm", "tcn")
+BASELINE_METHODS = ("zero", "cfm", "tcn", "tcn_mpc")
 # Trial i of sampling seed K seeds its controller with i + this x K.
 SAMPLING_SEED_STRIDE = 1000
 
@@ -69,9 +72,15 @@ def ProtocolPoses(
     )
 
 
-def TrialScenario(name: str, text: str, pose: list[float] | None):
+def TrialScenario(
+    name: str,
+    text: str,
+    pose: list[float] | None,
+    cloth_start: list[float] | None = None,
+):
     """Scenario `name` with the YAML overrides `text` and, if given, the
-    trial's object pose on top."""
+    trial's object pose and the cloth's start ([dx, dy, dyaw_deg] from the
+    scenario's cloth pose) on top."""
     import yaml
     from fabric_imitation.scenarios.loader import LoadScenario
 
@@ -80,10 +89,59 @@ def TrialScenario(name: str, text: str, pose: list[float] | None):
         raise InputError(f"--scenario_text is not a YAML mapping: {text!r}")
     if pose is not None:
         overrides["object"] = {**overrides.get("object", {}), "pose": pose}
+    if cloth_start is not None and any(cloth_start):
+        base = LoadScenario(
+            scenario_name=name,
+            scenario_text=yaml.safe_dump(overrides) if overrides else "",
+        ).cloth.pose
+        moved = [round(b + d, 4) for b, d in zip(base, cloth_start, strict=True)]
+        overrides["cloth"] = {**overrides.get("cloth", {}), "pose": moved}
     return LoadScenario(
         scenario_name=name,
         scenario_text=yaml.safe_dump(overrides) if overrides else "",
     )
+
+
+# Each trial's cloth starts moved up to this far [m] and turned up to this
+# much [deg] on the table from the scenario's cloth pose (the grippers start
+# at its near corners); the demo keeps the nominal start.
+CLOTH_START_SHIFT = 0.02
+CLOTH_START_TURN_DEG = 10.0
+# The cloth starts come from their own random stream, seeded (pose seed,
+# this), so that adding them left every seed's object poses as they were.
+CLOTH_STREAM = 1
+
+
+def ClothStarts(
+    scenario_name: str,
+    poses: list[list[float]],
+    *,
+    seed: int,
+    scenario_text: str = "",
+) -> list[list[float]]:
+    """[dx, dy, dyaw_deg] of the cloth's start for each trial pose; a start
+    that does not fit with the trial's object (the scenario refuses it) is
+    drawn again."""
+    rng = np.random.default_rng([seed, CLOTH_STREAM])
+    starts = []
+    for pose in poses:
+        while True:
+            r = CLOTH_START_SHIFT * math.sqrt(rng.uniform())
+            a = rng.uniform(0, 2 * math.pi)
+            start = [
+                round(r * math.cos(a), 4),
+                round(r * math.sin(a), 4),
+                round(rng.uniform(-CLOTH_START_TURN_DEG, CLOTH_START_TURN_DEG), 2),
+            ]
+            try:
+                CheckGrippersClear(
+                    TrialScenario(scenario_name, scenario_text, pose, start)
+                )
+            except InputError:
+                continue
+            starts.append(start)
+            break
+    return starts
 
 
 def TrialPoses(
@@ -111,7 +169,7 @@ def TrialPoses(
             round(p[2] + yaw, 2),
         ]
         try:
-            TrialScenario(scenario_name, scenario_text, pose)
+            CheckGrippersClear(TrialScenario(scenario_name, scenario_text, pose))
         except InputError:
             continue
         poses.append(pose)
@@ -158,21 +216,12 @@ def _run_trial(job: dict) -> dict:
     import torch
 
     torch.set_num_threads(1)
-    scenario = TrialScenario(job["scenario"], job["scenario_text"], job["pose"])
+    scenario = TrialScenario(
+        job["scenario"], job["scenario_text"], job["pose"], job.get("cloth_start")
+    )
     t0 = time.perf_counter()
     if job["method"] == "scripted":
-        from fabric_imitation.diagrams.demos import ScriptedDemoPlan
-        from fabric_imitation.diagrams.simulation import OpenLoopRun
-
-        plan = ScriptedDemoPlan(scenario)
-        result = OpenLoopRun(
-            scenario, actions=plan.actions, release_step=plan.release_step
-        ).run(capture_frames=False)
-        summary = {
-            "success": bool(result.success.success),
-            "success_details": result.success.details,
-            "error": result.error,
-        }
+        summary = ScriptedTrial(scenario)
     else:
         from fabric_imitation.diagrams.imitation import Imitate
 
@@ -186,6 +235,7 @@ def _run_trial(job: dict) -> dict:
                 controller=controller,
                 progress=False,
                 seed=job["trial"] + SAMPLING_SEED_STRIDE * job.get("sampling_seed", 0),
+                on_violation=job.get("on_violation", "stop"),
             )
         except Exception as e:  # noqa: BLE001 (one failed trial; the sweep goes on)
             summary = {
@@ -193,6 +243,58 @@ def _run_trial(job: dict) -> dict:
                 "error": f"{type(e).__name__}: {' '.join(str(e).split())[:300]}",
             }
     return {**job, **summary, "trial_seconds": round(time.perf_counter() - t0, 1)}
+
+
+def ScriptedTrial(scenario) -> dict:
+    """The task's scripted demo at the scenario's poses, judged as a method's
+    trial: success, and the referee's rule breaks on the true cloth and the
+    gripper-object contacts (it is never stopped: the demo is the ceiling)."""
+    from fabric_imitation.diagrams.demos import ScriptedDemoPlan
+    from fabric_imitation.diagrams.referee import JudgeTransitions, TaskReferee
+    from fabric_imitation.diagrams.simulation import OpenLoopRun
+    from fabric_imitation.diagrams.station import StationPorts
+    from fabric_imitation.learning.state import PlanarPose, world_to_object
+
+    plan = ScriptedDemoPlan(scenario)
+    run = OpenLoopRun(scenario, actions=plan.actions, release_step=plan.release_step)
+    station = run.station.diagram
+    pose = PlanarPose.FromDegrees(scenario.object.pose)
+
+    def keypoints_O() -> np.ndarray:
+        p_W = station.GetOutputPort(StationPorts.CLOTH_KEYPOINTS).Eval(
+            run.station_context
+        )
+        return world_to_object(np.reshape(p_W, (-1, 3)), np.array(pose))
+
+    states = [keypoints_O()]
+    result = run.run(
+        capture_frames=False, on_step=lambda k, frame: states.append(keypoints_O())
+    )
+    n = len(states) - 1
+    actions_O = np.array(
+        [pose.vector_to_object(a.reshape(2, 3)).ravel() for a in plan.actions[:n]]
+    ).reshape(n, 6)
+    judged = JudgeTransitions(
+        TaskReferee(scenario.task),
+        scenario,
+        np.array(states[:-1]).reshape(n, -1, 3),
+        actions_O,
+        np.array(states[1:]).reshape(n, -1, 3),
+    )
+    summary = {
+        "success": bool(result.success.success),
+        "success_details": result.success.details,
+        "error": result.error,
+        "rule_breaks_true": {rule: int(v.sum()) for rule, v in judged.items()},
+        "true_rule_break_steps": np.flatnonzero(judged["any"]).tolist(),
+        "steps": n,
+    }
+    if station.HasOutputPort(StationPorts.GRIPPER_OBJECT_CONTACT):
+        contact = station.GetOutputPort(StationPorts.GRIPPER_OBJECT_CONTACT).Eval(
+            run.station_context
+        )
+        summary["collisions"] = int(contact[0])
+    return summary
 
 
 def _RayTrials(jobs: list[dict], workers: int, prepared: dict):
@@ -267,6 +369,69 @@ def _aggregate(rows: list[dict]) -> dict:
     return out
 
 
+def _hash_files(paths: list[Path], root: Path | None = None) -> str:
+    """16 hex digits of sha256 over the files' names (relative to `root`)
+    and contents, in sorted order; "none" for no files."""
+    paths = sorted(p for p in paths if p.is_file())
+    if not paths:
+        return "none"
+    h = hashlib.sha256()
+    for p in paths:
+        h.update(str(p.relative_to(root) if root else p.name).encode())
+        h.update(p.read_bytes())
+    return h.hexdigest()[:16]
+
+
+def CodeFingerprint() -> str:
+    """The project's Python sources and scenario files."""
+    root = Path(__file__).resolve().parent.parent
+    files = [
+        p
+        for folder in ("diagrams", "systems", "learning", "scenarios")
+        for p in (root / folder).rglob("*")
+        if p.suffix in (".py", ".yaml") and "__pycache__" not in p.parts
+    ]
+    return _hash_files(files, root)
+
+
+def TrialFingerprints(
+    scenario_name: str,
+    *,
+    scenario_text: str,
+    demo: Path | None,
+    priors: Path | None,
+) -> dict:
+    """What a trial's figures depend on besides its poses and seeds: the
+    code, the priors, the baselines, the referee's rules, the demo and the
+    scenario (at its nominal poses). Rows of a table must share the first
+    four; a row also the last two (`fabric-imitate report` checks)."""
+    from fabric_imitation.diagrams.imitation import DEFAULT_PRIORS, DefaultDemoDir
+    from fabric_imitation.diagrams.referee import TaskReferee
+    from fabric_imitation.scenarios.schema import Scenario
+    from pydrake.common.yaml import yaml_dump_typed
+
+    scenario = TrialScenario(scenario_name, scenario_text, None)
+    priors_dir = Path(priors) if priors else DEFAULT_PRIORS
+    demo_dir = Path(demo) if demo else DefaultDemoDir(scenario_name, scenario)
+    text = yaml_dump_typed(scenario, schema=Scenario)
+    return {
+        "code": CodeFingerprint(),
+        "priors": _hash_files([priors_dir / "priors.pt", priors_dir / "priors.json"]),
+        "baselines": _hash_files(
+            [priors_dir / "baselines.pt", priors_dir / "baselines.json"]
+        ),
+        "referee": TaskReferee(scenario.task).fingerprint(),
+        "demo": _hash_files(list(demo_dir.glob("*"))),
+        "scenario": hashlib.sha256(text.encode()).hexdigest()[:16],
+    }
+
+
+# Trials one worker process runs before a fresh one replaces it: a process's
+# memory grows with the pydrake and torch objects of each trial's diagram,
+# so a long sweep runs in fresh processes.
+WORKER_TRIALS = 10
+
+
 def Evaluate(
     *,
     scenario_names: list[str],
@@ -282,6 +447,8 @@ def Evaluate(
     protocol: str = "transformation",
     executor: str = "local",
     sampling_seed: int = 0,
+    on_violation: str = "stop",
+    worker_trials: int = WORKER_TRIALS,
 ) -> dict:
     """Runs `trials` trials per scenario and method (resumable via `out`,
     a JSON-lines file of finished trials); writes `out`.summary.json and a
@@ -292,7 +459,20 @@ def Evaluate(
     sampling (trial i samples with seed i + SAMPLING_SEED_STRIDE x
     sampling_seed): the same poses under another sampling seed are an
     equally valid run, so their spread is the run-to-run spread of a
-    count."""
+    count. `seed` also draws each trial's cloth start (ClothStarts).
+
+    `on_violation`: "stop" ends a trial at the referee's first rule break or
+    gripper-object contact on the true cloth (diagrams/referee.py); "count"
+    only counts. Trials run in worker processes that are replaced after
+    `worker_trials` trials each (0: with one worker, in this process)."""
+    from fabric_imitation.diagrams.referee import ON_VIOLATION
+
+    if on_violation not in ON_VIOLATION:
+        raise InputError(
+            f"unknown --on-violation {on_violation!r}; use {' or '.join(ON_VIOLATION)}"
+        )
+    if worker_trials < 0:
+        raise InputError(f"worker_trials must be >= 0, got {worker_trials}")
     if sampling_seed < 0:
         raise InputError(f"--sampling-seed must be >= 0, got {sampling_seed}")
     if executor not in ("local", "ray"):
@@ -311,11 +491,23 @@ def Evaluate(
             if (
                 row.get("protocol", "transformation") == protocol
                 and row.get("sampling_seed", 0) == sampling_seed
+                and row.get("on_violation") == on_violation
+                and row.get("pose_seed") == seed
             ):
                 done[(row["scenario"], row["method"], row["trial"])] = row
     pose_lists = {
         name: ProtocolPoses(
             name, protocol, trials=trials, seed=seed, scenario_text=scenario_text
+        )
+        for name in scenario_names
+    }
+    cloth_starts = {
+        name: ClothStarts(name, poses, seed=seed, scenario_text=scenario_text)
+        for name, poses in pose_lists.items()
+    }
+    fingerprints = {
+        name: TrialFingerprints(
+            name, scenario_text=scenario_text, demo=demo, priors=priors
         )
         for name in scenario_names
     }
@@ -330,6 +522,10 @@ def Evaluate(
                             "method": method,
                             "trial": i,
                             "pose": pose,
+                            "cloth_start": cloth_starts[name][i],
+                            "pose_seed": seed,
+                            "on_violation": on_violation,
+                            "fingerprint": fingerprints[name],
                             "demo": str(demo) if demo else None,
                             "priors": str(priors) if priors else None,
                             "scenario_text": scenario_text,
@@ -373,7 +569,7 @@ def Evaluate(
     if executor == "ray":
         for row in _RayTrials(jobs, workers, prepared):
             store(row)
-    elif workers == 1:
+    elif workers == 1 and worker_trials == 0:
         _set_prepared(prepared)
         for job in jobs:
             store(_run_trial(job))
@@ -381,7 +577,10 @@ def Evaluate(
         import multiprocessing as mp
 
         with mp.get_context("spawn").Pool(
-            workers, initializer=_set_prepared, initargs=(prepared,)
+            workers,
+            initializer=_set_prepared,
+            initargs=(prepared,),
+            maxtasksperchild=worker_trials or None,
         ) as pool:
             for row in pool.imap_unordered(_run_trial, jobs):
                 store(row)
@@ -405,7 +604,10 @@ def Evaluate(
         "trials_per_cell": trials,
         "seed": seed,
         "sampling_seed": sampling_seed,
+        "on_violation": on_violation,
         "poses": pose_lists,
+        "cloth_starts": cloth_starts,
+        "fingerprints": fingerprints,
         "prepare_seconds": prepare_seconds,
         "results": table,
         "failures": [

@@ -28,6 +28,13 @@ from pathlib import Path
 import numpy as np
 import torch
 from fabric_imitation.diagrams.recording import MakeRecordingMeshcat
+from fabric_imitation.diagrams.referee import (
+    ON_VIOLATION,
+    FirstBreak,
+    JudgeTransitions,
+    ObjectSafetyContext,
+    TaskReferee,
+)
 from fabric_imitation.diagrams.simulation import (
     AddClothRecorder,
     AddVideoRecorder,
@@ -81,6 +88,7 @@ from fabric_imitation.systems.imitation import (
     ReplayController,
     ZeroController,
 )
+from fabric_imitation.systems.referee import HALT_COLLISION, HALT_RULE_BREAK, Referee
 from fabric_imitation.systems.targets import GripperTargetIntegrator
 from fabric_imitation.systems.visualization import VideoRecorder
 from pydrake.systems.analysis import Simulator
@@ -92,37 +100,6 @@ DEFAULT_PRIORS = PACKAGE_ROOT / "learning" / "priors" / "default"
 DEFAULT_DEMOS = PACKAGE_ROOT / "scenarios" / "demos"
 EVENT_STAGGER = 1e-3  # [s]
 NUM_KEYPOINTS = 8
-
-
-def ObjectSafetyContext(
-    scenario: Scenario, *, estimated: bool = False
-) -> SafetyContext:
-    """Safety rules for states in the object frame of `scenario`; `estimated`:
-    the states are the camera's estimates (the controller's view), so rule 2
-    allows for far corners hidden under a hanging side (SafetyContext)."""
-    lower = np.array(scenario.workspace.lower, float)
-    lower[2] = max(lower[2], -scenario.cloth.thickness)
-    return SafetyContext(
-        edge_length=scenario.cloth.size[0],
-        workspace_lower=lower,
-        workspace_upper=np.array(scenario.workspace.upper, float),
-        object_size=_object_size(scenario),
-        frame_pose=np.array(PlanarPose.FromDegrees(scenario.object.pose)),
-        far_corners_may_hang=estimated and scenario.safety.hidden_corners_hang,
-        far_corners_may_drape=estimated and scenario.safety.hidden_corners_drape,
-        side_length=scenario.cloth.size[1],
-        direction_margin_deg=(
-            scenario.safety.estimate_margin_deg if estimated else 0.0
-        ),
-    )
-
-
-def _object_size(scenario: Scenario) -> np.ndarray | None:
-    return (
-        np.array(scenario.object.size, float)
-        if scenario.object.kind != "none"
-        else None
-    )
 
 
 def DemoStates(
@@ -250,6 +227,7 @@ def MakeImitationDiagram(
     lcm=None,
     video: bool = False,
     controller: str = "mpc",
+    on_violation: str = "stop",
 ) -> ImitationDiagram:
     """Station + perception + demo reward + MPC + target integration, with a
     logger per signal an episode is scored on (period: the control step).
@@ -262,12 +240,24 @@ def MakeImitationDiagram(
 
     `controller`: "mpc" (the method), "replay" (the Replay baseline: the
     demo's grasped-corner path followed in the object frame of now,
-    `ReplayController`), or "zero", "cfm", "tcn" (the baselines of
-    learning/baselines.py; `prepared` must have been made with
-    `baselines=True`).
+    `ReplayController`), "zero", "cfm", "tcn" (the paper's baselines,
+    learning/baseline_policies.py), or "tcn_mpc" (the TCN reward on this
+    method's planner; `prepared` must have been made with `baselines=True`
+    for these four).
 
     With `video=True` a `VideoRecorder` keeps the control camera's images
-    and (simulation) an oblique people's camera's at VIDEO_FPS."""
+    and (simulation) an oblique people's camera's at VIDEO_FPS.
+
+    In simulation the benchmark's `Referee` judges every executed action on
+    the true keypoints by the task's rules (diagrams/referee.py) and watches
+    gripper-object contact; with `on_violation="stop"` its ``halt`` ends the
+    episode ("rule_break" or "collision"), with "count" it only records. On
+    hardware there is no true cloth and no referee."""
+    if on_violation not in ON_VIOLATION:
+        raise InputError(
+            f"unknown on-violation rule {on_violation!r}; use "
+            f"{' or '.join(ON_VIOLATION)}"
+        )
     cfg = mpc_config or scenario.mpc
     priors, demo = prepared.priors, prepared.model
     dt = scenario.motion.step_seconds
@@ -304,7 +294,7 @@ def MakeImitationDiagram(
     reward = builder.AddNamedSystem(
         "demo_reward", DemoReward(demo=demo, num_keypoints=m)
     )
-    if controller in ("zero", "cfm", "tcn") and prepared.baselines is None:
+    if controller in ("zero", "cfm", "tcn", "tcn_mpc") and prepared.baselines is None:
         raise InputError(
             f"controller {controller!r} needs PrepareImitation(..., baselines=True)"
         )
@@ -315,8 +305,8 @@ def MakeImitationDiagram(
         safety_ctx=ObjectSafetyContext(scenario, estimated=True),
         config=cfg,
     )
-    if controller == "tcn":
-        from fabric_imitation.learning.baselines import TcnMpc
+    if controller == "tcn_mpc":
+        from fabric_imitation.learning.baseline_policies import TcnMpc
 
         mpc = TcnMpc(baselines=prepared.baselines, **mpc_args)
     else:
@@ -328,28 +318,44 @@ def MakeImitationDiagram(
         step_cap=int(cfg.step_cap_factor * demo.T) + 5,
     )
     seed = scenario.random_seed if seed is None else seed
-    if controller in ("mpc", "tcn"):
+    # The baselines' moves pass only the driver's limits (max_step, reach box).
+    from fabric_imitation.learning.limits import DriverLimits
+
+    limits = DriverLimits.FromSafety(scenario.safety, mpc_args["safety_ctx"])
+    if controller in ("mpc", "tcn_mpc"):
         system = MpcController(mpc=mpc, seed=seed, **timing)
     elif controller == "zero":
-        from fabric_imitation.learning.baselines import ZeroFollower
+        from fabric_imitation.learning.baseline_policies import ZeroFollower
 
-        follower = ZeroFollower(
-            prepared.baselines,
-            prepared.demo_states,
-            max_step=scenario.safety.max_step,
-        )
+        follower = ZeroFollower(prepared.baselines, prepared.demo_states, limits=limits)
         system = ZeroController(follower=follower, **timing)
     elif controller == "cfm":
-        from fabric_imitation.learning.baselines import CfmPlanner
+        from fabric_imitation.learning.baseline_policies import (
+            CfmConfig,
+            CfmPlanner,
+        )
 
         planner = CfmPlanner(
             prepared.baselines,
             prepared.demo_states,
-            safety=scenario.safety,
-            safety_ctx=ObjectSafetyContext(scenario, estimated=True),
-            num_samples=cfg.num_samples,
+            limits=limits,
+            config=CfmConfig(num_samples=cfg.num_samples),
         )
         system = CfmController(planner=planner, seed=seed, **timing)
+    elif controller == "tcn":
+        from fabric_imitation.learning.baseline_policies import TcnPlanner
+        from fabric_imitation.systems.imitation import TcnController
+
+        # H: the control steps the demo took, from its frame times.
+        times = prepared.demo.manifest.get("frame_times") or []
+        planner = TcnPlanner(
+            prepared.baselines,
+            priors,
+            prepared.demo_states,
+            limits=limits,
+            demo_steps=round((times[-1] - times[0]) / dt) if len(times) > 1 else None,
+        )
+        system = TcnController(planner=planner, seed=seed, **timing)
     elif controller == "replay":
         corners = corner_indices(m)
         path = prepared.demo_states[:, [corners["s1"], corners["s2"]]]
@@ -358,7 +364,8 @@ def MakeImitationDiagram(
         )
     else:
         raise InputError(
-            f"unknown controller {controller!r}; use mpc, replay, zero, cfm or tcn"
+            f"unknown controller {controller!r}; use mpc, replay, zero, cfm, tcn "
+            "or tcn_mpc"
         )
     controller = builder.AddNamedSystem("controller", system)
     targets = builder.AddNamedSystem(
@@ -403,6 +410,12 @@ def MakeImitationDiagram(
             estimator.GetOutputPort("remembered_far_corners"),
             controller.GetInputPort("remembered_far_corners"),
         )
+    if not hardware:
+        referee = _AddReferee(builder, scenario, station, controller, m, dt, start)
+        if on_violation == "stop":
+            builder.Connect(
+                referee.GetOutputPort("halt"), controller.GetInputPort("halt")
+            )
     builder.Connect(controller.GetOutputPort("action"), targets.GetInputPort("action"))
     builder.Connect(
         controller.GetOutputPort("release"),
@@ -460,6 +473,11 @@ def MakeImitationDiagram(
         logged["true_keypoints"] = station.diagram.GetOutputPort(
             StationPorts.CLOTH_KEYPOINTS
         )
+        logged["halt"] = referee.GetOutputPort("halt")
+        if station.diagram.HasOutputPort(StationPorts.GRIPPER_OBJECT_CONTACT):
+            logged["contact"] = station.diagram.GetOutputPort(
+                StationPorts.GRIPPER_OBJECT_CONTACT
+            )
     loggers = {}
     for name, port in logged.items():
         loggers[name] = LogVectorOutput(port, builder, publish_period=dt)
@@ -495,6 +513,41 @@ def MakeImitationDiagram(
         lcm=lcm,
         video=recorder,
     )
+
+
+def _AddReferee(builder, scenario, station, controller, m: int, dt, start) -> Referee:
+    """The benchmark's referee, fed by the true keypoints, the controller's
+    executed actions and the station's gripper-object contact."""
+    rules = TaskReferee(scenario.task)
+
+    def judge(before_O, action_O, after_O) -> str | None:
+        hit = FirstBreak(
+            JudgeTransitions(
+                rules, scenario, before_O[None], action_O[None], after_O[None]
+            )
+        )
+        return None if hit is None else hit[1]
+
+    referee = builder.AddNamedSystem(
+        "referee",
+        Referee(judge=judge, rules=RULES, num_keypoints=m, period=dt, offset=start),
+    )
+    builder.Connect(
+        station.diagram.GetOutputPort(StationPorts.CLOTH_KEYPOINTS),
+        referee.GetInputPort("true_keypoints"),
+    )
+    builder.Connect(
+        station.diagram.GetOutputPort(StationPorts.OBJECT_POSE),
+        referee.GetInputPort("object_pose"),
+    )
+    for name in ("action", "steps"):
+        builder.Connect(controller.GetOutputPort(name), referee.GetInputPort(name))
+    if station.diagram.HasOutputPort(StationPorts.GRIPPER_OBJECT_CONTACT):
+        builder.Connect(
+            station.diagram.GetOutputPort(StationPorts.GRIPPER_OBJECT_CONTACT),
+            referee.GetInputPort("contact"),
+        )
+    return referee
 
 
 @dc.dataclass
@@ -718,6 +771,23 @@ def CountRuleBreaks(
     }
 
 
+def _Halt(logs: dict[str, np.ndarray]) -> dict:
+    """The referee's verdict: `halt` (None, or the kind, the rule and the
+    actions executed when it halted) and `collisions` (plant steps on which
+    a gripper touched the object; None in a scene without one)."""
+    code, rule, step = logs["halt"][-1]
+    halt = None
+    if code == HALT_RULE_BREAK:
+        halt = {"kind": "rule_break", "rule": RULES[int(rule)], "step": int(step)}
+    elif code == HALT_COLLISION:
+        halt = {"kind": "collision", "rule": None, "step": int(step)}
+    contact = logs.get("contact")
+    return {
+        "halt": halt,
+        "collisions": int(contact[-1, 0]) if contact is not None else None,
+    }
+
+
 def _chamfer(camera, frame: Frame, demo: Demo, pose_now, rng) -> float:
     a = cloud_from_depth(camera, frame.depth, frame.mask, rng)
     b = cloud_from_depth(camera, demo.final_depth, demo.final_mask, rng)
@@ -773,13 +843,22 @@ def ScoreEpisode(
         "error": run.error,
     }
     if tr.true_before is not None:
-        true = CountRuleBreaks(
-            tr.true_before, tr.action, tr.true_after, scenario, safety_ctx
+        # The benchmark referee's rules (diagrams/referee.py), not the
+        # controller's.
+        judged = JudgeTransitions(
+            TaskReferee(scenario.task),
+            scenario,
+            tr.true_before,
+            tr.action,
+            tr.true_after,
+            frame_pose=np.array(pose),
         )
+        true = {rule: int(v.sum()) for rule, v in judged.items()}
         # The executed actions (0-based) that broke a rule on the true cloth.
-        summary["true_rule_break_steps"] = true.pop("at")
+        summary["true_rule_break_steps"] = np.flatnonzero(judged["any"]).tolist()
         summary["rule_breaks_true"] = true
         summary["executed_violations_ground_truth"] = true["any"]
+        summary.update(_Halt(logs))
     if tr.true_before is None:
         summary["ground_truth"] = (
             "none on hardware: success, IoU, Chamfer distance and rule breaks on "
@@ -807,7 +886,9 @@ def ScoreEpisode(
             np.random.default_rng(0),
         )
         summary.update(
-            success=bool(report.success) and run.error is None,
+            success=bool(report.success)
+            and run.error is None
+            and summary["termination"] not in ("rule_break", "collision"),
             success_details=report.details,
             final_iou=round(final_iou, 3),
             final_chamfer=round(chamfer, 6),
@@ -831,6 +912,7 @@ def Imitate(
     lcm=None,
     co_simulate=None,
     controller: str = "mpc",
+    on_violation: str = "stop",
 ) -> dict:
     """Runs one imitation episode; returns the JSON summary. `prepared` (from
     `PrepareImitation`) skips learning from the demo again.
@@ -861,6 +943,7 @@ def Imitate(
         lcm=lcm,
         video=video is not None,
         controller=controller,
+        on_violation=on_violation,
     )
     root = None
     if co_simulate is not None:
@@ -881,6 +964,7 @@ def Imitate(
         "scenario": scenario_name,
         "station": "hardware (LCM drivers)" if hardware else "simulation",
         "object_pose": list(scenario.object.pose),
+        "on_violation": None if hardware else on_violation,
         **ScoreEpisode(scenario, prepared, run),
     }
     # Writing files comes last and cannot lose the run's summary.

@@ -31,6 +31,10 @@ from fabric_imitation.diagrams.cloth_mesh import ClothMesh, MakeClothMesh, TopTr
 from fabric_imitation.learning.errors import InputError
 from fabric_imitation.scenarios.schema import Scenario, yaw_rad
 from fabric_imitation.systems.gripper_contact import (
+    Capsule as GripperCapsule,
+)
+from fabric_imitation.systems.gripper_contact import (
+    CapsulesPenetration,
     GripperBody,
     GripperObjectContact,
     PandaHandCapsules,
@@ -536,6 +540,43 @@ ANCHOR_CAPSULES = PandaHandCapsules()
 ANCHOR_HAND_YAW = RotationMatrix.MakeZRotation(np.pi / 4)
 
 
+def AnchorHandCapsules() -> tuple[Capsule, ...]:
+    """The anchors' hand capsules in the anchor's (world-aligned) frame."""
+    return tuple(
+        GripperCapsule(
+            tuple(ANCHOR_HAND_YAW @ np.array(c.p_a)),
+            tuple(ANCHOR_HAND_YAW @ np.array(c.p_b)),
+            c.radius,
+        )
+        for c in ANCHOR_CAPSULES
+    )
+
+
+# A trial's start must leave the grippers' hands this far [m] from the task
+# object (0: not inside it).
+START_CLEARANCE = 0.0
+
+
+def CheckGrippersClear(scenario: Scenario) -> None:
+    """Raises InputError where a gripper's hand, holding its corner at the
+    start, would lie within START_CLEARANCE of the task object."""
+    if scenario.object.kind == "none":
+        return
+    X_OW = PoseOnTable(scenario.object.pose).inverse()
+    for side, p_W in GraspCorners(scenario).items():
+        depth = CapsulesPenetration(
+            AnchorHandCapsules(),
+            X_OW @ RigidTransform(p_W),
+            np.array(scenario.object.size, float),
+        )
+        if depth >= -START_CLEARANCE:
+            raise InputError(
+                f"the {side} gripper's hand starts {depth * 100:.1f} cm inside "
+                f"the object (it must start at least {START_CLEARANCE * 100:g} "
+                "cm clear of it)"
+            )
+
+
 def _gripper_bodies(plant: MultibodyPlant, scenario: Scenario) -> list[GripperBody]:
     """The plant bodies that make up the grippers, with their capsules."""
     if scenario.grippers.kind == "panda":
@@ -548,14 +589,7 @@ def _gripper_bodies(plant: MultibodyPlant, scenario: Scenario) -> list[GripperBo
             )
             for link, capsules in PandaLinkCapsules().items()
         ]
-    yawed = tuple(
-        type(c)(
-            tuple(ANCHOR_HAND_YAW @ np.array(c.p_a)),
-            tuple(ANCHOR_HAND_YAW @ np.array(c.p_b)),
-            c.radius,
-        )
-        for c in ANCHOR_CAPSULES
-    )
+    yawed = AnchorHandCapsules()
     return [
         GripperBody(
             int(

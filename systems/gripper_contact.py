@@ -100,6 +100,20 @@ class GripperBody:
     name: str
 
 
+def CapsulesPenetration(
+    capsules: tuple[Capsule, ...],
+    X_OB: RigidTransform,
+    object_size: np.ndarray,
+) -> float:
+    """The deepest penetration [m] of the capsules (body frame B, the body
+    at X_OB in the object's frame) into the object's box (> 0), or the
+    smallest clearance as a negative number."""
+    pts = np.vstack([c.samples() for c in capsules])
+    radii = np.concatenate([np.full(len(c.samples()), c.radius) for c in capsules])
+    p_O = X_OB.multiply(pts.T).T
+    return float((radii - BoxSignedDistance(p_O, object_size)).max())
+
+
 class GripperObjectContact(LeafSystem):
     """Whether a gripper touches the task object, checked every plant step.
 

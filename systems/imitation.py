@@ -14,6 +14,7 @@ from fabric_imitation.learning.state import (
     corner_indices,
     world_to_object,
 )
+from fabric_imitation.systems.referee import HALT_COLLISION, HALT_RULE_BREAK
 from pydrake.common.value import AbstractValue
 from pydrake.math import RigidTransform
 from pydrake.systems.framework import BasicVector, EventStatus, LeafSystem
@@ -23,11 +24,15 @@ _LOG = logging.getLogger("fabric_imitation.mpc")
 
 # MpcController termination codes (output "termination").
 RUNNING, TERMINATED_CLASSIFIER, TERMINATED_INFEASIBLE, TERMINATED_STEP_CAP = 0, 1, 2, 3
+# Ended by the benchmark's referee (systems/referee.py, input ``halt``).
+TERMINATED_RULE_BREAK, TERMINATED_COLLISION = 4, 5
 TERMINATION_NAMES = {
     RUNNING: "running",
     TERMINATED_CLASSIFIER: "classifier",
     TERMINATED_INFEASIBLE: "infeasible",
     TERMINATED_STEP_CAP: "step cap",
+    TERMINATED_RULE_BREAK: "rule_break",
+    TERMINATED_COLLISION: "collision",
 }
 
 
@@ -257,7 +262,9 @@ class StepController(LeafSystem):
     hardware it can come from a marker).
 
     Input ports: ``keypoints`` (3M, object frame), ``object_pose``
-    (RigidTransform X_WO).
+    (RigidTransform X_WO), ``halt`` (3, optional: the benchmark referee's;
+    a positive code ends the episode as "rule_break" or "collision" before
+    the next action).
     Output ports (all from state, i.e. the result of the last step):
     ``action`` (6, world-frame relative moves [a_L, a_R]), ``release`` (1),
     ``termination`` (1, one of TERMINATION_NAMES' codes), ``steps`` (1,
@@ -283,6 +290,7 @@ class StepController(LeafSystem):
         self._pose = self.DeclareAbstractInputPort(
             "object_pose", AbstractValue.Make(RigidTransform())
         )
+        self._halt = self.DeclareVectorInputPort("halt", 3)
         self._state = {
             name: self.DeclareDiscreteState(size)
             for name, size in (
@@ -303,6 +311,16 @@ class StepController(LeafSystem):
 
     def _get(self, context, name: str) -> np.ndarray:
         return context.get_discrete_state(self._state[name]).value()
+
+    def _halted(self, context) -> int | None:
+        """The referee's termination code, if it has halted the episode."""
+        if not self._halt.HasValue(context):
+            return None
+        code = int(self._halt.Eval(context)[0])
+        return {
+            HALT_RULE_BREAK: TERMINATED_RULE_BREAK,
+            HALT_COLLISION: TERMINATED_COLLISION,
+        }.get(code)
 
     def Finished(self, S, steps: int) -> int | None:
         """A termination code if the task is done in state S after `steps`
@@ -333,7 +351,9 @@ class StepController(LeafSystem):
         progress = int(self._get(context, "progress")[0])
         action_W = np.zeros(6)
         iterations = 0
-        code = self.Finished(S, steps)
+        code = self._halted(context)
+        if code is None:
+            code = self.Finished(S, steps)
         if code is None and steps >= self._cap:
             code = TERMINATED_STEP_CAP
         if code is None:
@@ -451,10 +471,13 @@ class ReplayController(StepController):
 
 
 class ZeroController(StepController):
-    """The Zero baseline (learning/baselines.py `ZeroFollower`): the goal-
-    conditioned inverse model towards the demo's states one after another
-    (see StepController for ports and the step cap). ``progress`` is the
-    subgoal; the steps spent on it are kept in the ``memory`` state."""
+    """The Zero baseline (learning/baseline_policies.py `ZeroFollower`): the
+    goal-conditioned inverse model towards the demo's frames one after
+    another, the next once the goal recognizer says the state has reached
+    this one (see StepController for ports and the step cap). ``progress``
+    is the subgoal; the steps spent on it are kept in the ``memory`` state.
+    Ends ("classifier") once the recognizer has passed the demo's last frame,
+    ("step cap") where the last subgoal ran out of tries."""
 
     def __init__(self, *, follower, **kwargs):
         super().__init__(**kwargs)
@@ -462,33 +485,52 @@ class ZeroController(StepController):
 
     def Decide(self, context, S, pose, steps, progress):
         tries = int(self._get(context, "memory")[0])
-        action, j, tries = self._follower.decide(S, progress, tries)
-        if action is None:
-            return TERMINATED_CLASSIFIER, None, j, 0, 0
-        return RUNNING, action.numpy(), j, 0, tries
+        step = self._follower.decide(S, progress, tries, np.array(pose))
+        if step.action is None:
+            code = TERMINATED_STEP_CAP if step.gave_up else TERMINATED_CLASSIFIER
+            return code, None, step.subgoal, 0, 0
+        return RUNNING, step.action.numpy(), step.subgoal, 0, step.tries
 
 
 class CfmController(StepController):
-    """The CFM baseline (learning/baselines.py `CfmPlanner`): one-step
-    model-predictive control in the contrastive latent space (see
-    StepController for ports and the step cap); ``iterations`` reports the
-    number of valid sampled actions."""
+    """The CFM baseline (learning/baseline_policies.py `CfmPlanner`): one-step
+    model-predictive control in the contrastive latent space towards the
+    demo's final frame (see StepController for ports and the step cap);
+    ``progress`` is the demo frame nearest in latent space, ``iterations``
+    the number of sampled moves."""
 
     def __init__(self, *, planner, seed: int = 0, **kwargs):
         super().__init__(**kwargs)
         self._planner = planner
         self._seed = seed
 
+    def Finished(self, S, steps) -> int | None:
+        return TERMINATED_CLASSIFIER if self._planner.finished(S) else None
+
     def Decide(self, context, S, pose, steps, progress):
-        action, J, valid = self._planner.decide(
-            S, progress, np.array(pose), self._seed * 100003 + steps
+        action, nearest = self._planner.decide(
+            S, np.array(pose), self._seed * 100003 + steps
         )
-        if action is None:
-            done = J >= self._planner.T - 1  # else no valid action was found
-            return (
-                TERMINATED_CLASSIFIER if done else TERMINATED_INFEASIBLE,
-                None,
-                J,
-                valid,
-            )
-        return RUNNING, action.numpy(), J, valid
+        samples = self._planner.config.num_samples
+        return RUNNING, action.numpy(), nearest, samples
+
+
+class TcnController(StepController):
+    """The TCN baseline (learning/baseline_policies.py `TcnPlanner`): a
+    cross-entropy search over f_D rollouts for the time-aligned TCN reward
+    (see StepController for ports and the step cap); ``progress`` is the
+    aligned demo frame, ``iterations`` the search's."""
+
+    def __init__(self, *, planner, seed: int = 0, **kwargs):
+        super().__init__(**kwargs)
+        self._planner = planner
+        self._seed = seed
+
+    def Finished(self, S, steps) -> int | None:
+        return TERMINATED_CLASSIFIER if self._planner.finished(S, steps) else None
+
+    def Decide(self, context, S, pose, steps, progress):
+        action, aligned, iterations = self._planner.decide(
+            S, steps, np.array(pose), self._seed * 100003 + steps
+        )
+        return RUNNING, action.numpy(), aligned, iterations

@@ -244,7 +244,12 @@ def test_a_sampling_seed_is_another_run_of_the_same_poses(tmp_path, monkeypatch)
     monkeypatch.setattr(evaluate, "_prepare", lambda job: object())
     out = tmp_path / "eval.jsonl"
     common = dict(
-        scenario_names=["box"], methods=["ours"], trials=2, out=out, progress=False
+        scenario_names=["box"],
+        methods=["ours"],
+        trials=2,
+        out=out,
+        progress=False,
+        worker_trials=0,
     )
     first = evaluate.Evaluate(**common)
     again = evaluate.Evaluate(**common, sampling_seed=3)
