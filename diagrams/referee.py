@@ -87,7 +87,7 @@ class RefereeRules:
 # its sides (box and box_big, nominal pose and turned up to 45 degrees);
 # hanging a towel, it swings the edge down in front of the plate with the
 # towel hanging below the grippers, at up to 152 degrees, stretching the
-# edge to 1.049 of its length. `docs/referee.md` gives the command.
+# edge to 1.049 of its length. docs/benchmark.md gives the command.
 REFEREES = {
     "box": RefereeRules(tau_c=0.5, tau_f=1.05, tau_d_deg=115.0, object_margin=0.02),
     "hang": RefereeRules(tau_c=0.5, tau_f=1.08, tau_d_deg=160.0, object_margin=0.02),
