@@ -775,7 +775,7 @@ def _Halt(logs: dict[str, np.ndarray]) -> dict:
     """The referee's verdict: `halt` (None, or the kind, the rule and the
     actions executed when it halted) and `collisions` (plant steps on which
     a gripper touched the object; None in a scene without one)."""
-    code, rule, step = logs["halt"][-1]
+    code, rule, step = logs["halt"][-1] if "halt" in logs else (0, -1, 0)
     halt = None
     if code == HALT_RULE_BREAK:
         halt = {"kind": "rule_break", "rule": RULES[int(rule)], "step": int(step)}
