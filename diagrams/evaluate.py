@@ -245,7 +245,21 @@ def _run_trial(job: dict) -> dict:
                 "success": False,
                 "error": f"{type(e).__name__}: {' '.join(str(e).split())[:300]}",
             }
-    return {**job, **summary, "trial_seconds": round(time.perf_counter() - t0, 1)}
+    import resource
+
+    return {
+        **job,
+        **summary,
+        "trial_seconds": round(time.perf_counter() - t0, 1),
+        # The worker process and its largest resident set so far [MB]: a
+        # sweep's memory is flat when these stay flat across its trials.
+        "worker": {
+            "pid": os.getpid(),
+            "max_rss_mb": round(
+                resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, 1
+            ),
+        },
+    }
 
 
 def ScriptedTrial(scenario) -> dict:

@@ -288,10 +288,14 @@ def MakeHardwareClothStation(
     )
     builder.ExportOutput(object_pose.get_output_port(), StationPorts.OBJECT_POSE)
     n = int(np.prod(scenario.cloth.resolution))
-    for name, size in (
+    # Simulation-only ports, unknown (NaN) on hardware.
+    unknowns = [
         (StationPorts.CLOTH_POSITIONS, 3 * n),
         (StationPorts.CLOTH_KEYPOINTS, 3 * NUM_KEYPOINTS),
-    ):
+    ]
+    if scenario.object.kind != "none":
+        unknowns.append((StationPorts.GRIPPER_OBJECT_CONTACT, 3))
+    for name, size in unknowns:
         unknown = builder.AddNamedSystem(
             name, ConstantVectorSource(np.full(size, np.nan))
         )

@@ -199,7 +199,11 @@ def test_ray_and_local_evaluations_write_the_same_trials(tmp_path):
         lines = (tmp_path / name).read_text().splitlines()
         return sorted(
             (
-                {k: v for k, v in json.loads(line).items() if k != "trial_seconds"}
+                {
+                    k: v
+                    for k, v in json.loads(line).items()
+                    if k not in ("trial_seconds", "worker")
+                }
                 for line in lines
             ),
             key=lambda r: r["trial"],
