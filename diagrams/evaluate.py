@@ -23,10 +23,17 @@ from fabric_imitation.learning.errors import InputError
 # MPC settings).
 METHODS = {
     "ours": ("mpc", {}),
-    # The ablations (paper Table I): each changes only the switch it names.
-    "no_mpc": ("mpc", {"use_mpc": False}),
+    # The ablations as the paper defines them (Sec. V-C). No MPC applies f_I's
+    # action towards the subgoal as it is: no sampling, no projection onto
+    # the safe set, no check (the referee judges what it does), f_I even
+    # where the scenario's prior is the grasped corners'. No Prior samples
+    # around zero; No Cost drops the constraint cost.
+    "no_mpc": ("mpc", {"use_mpc": False, "use_cost": False, "prior": "inverse"}),
     "no_prior": ("mpc", {"use_prior": False}),
     "no_cost": ("mpc", {"use_cost": False}),
+    # An extra row: the first action of the scenario's prior, projected onto
+    # the safe set (ends the episode where no valid action is near).
+    "no_mpc_safe": ("mpc", {"use_mpc": False}),
     # The baselines (learning/baselines.py), trained by
     # `fabric-imitate train-baselines` on the same prior dataset.
     "zero": ("zero", {}),
