@@ -1,19 +1,22 @@
-"""The paper's baselines (Table I), on the keypoint state the method uses:
+"""The paper's baselines' networks (Table I), on the keypoint state the
+method uses, trained on the shared prior dataset; their run-time decisions
+are in learning/baseline_policies.py.
 
 - **Zero** (Pathak et al. 2018, zero-shot visual imitation): a goal-
   conditioned inverse model pi(s, g) trained with a forward-consistency loss
   (the predicted action, passed through a learned forward model F, must reach
-  the goal), stepping through the demo's states as subgoals (`ZeroFollower`).
+  the goal), and a goal recognizer r(s, g) in [0, 1]: has state s reached
+  goal g? Its positives are pairs of states of the same prior episode at most
+  `recognizer_positive_steps` control steps apart, its negatives pairs at
+  least `recognizer_negative_steps` apart (binary cross-entropy, half of each
+  per batch).
 - **CFM** (Yan et al. 2021, contrastive forward model): an encoder phi and a
   latent forward model T trained with InfoNCE (the other transitions of the
-  batch are the negatives); one-step model-predictive control: of sampled
-  valid actions, the one whose predicted latent is nearest the next demo
-  state's latent (`CfmPlanner`).
+  batch are the negatives).
 - **TCN** (Sermanet et al. 2018, time-contrastive networks): an embedding
   trained with a triplet loss (positives near in time, negatives far) on the
-  exploration sequences, then on the demo; reward = minus the embedding
-  distance to the time-aligned demo state, optimised by the method's own
-  sampling planner and safety rules (`TcnMpc`).
+  exploration sequences, then fine-tuned on the demo's sequence
+  (`Baselines.tcn_on_demo`).
 
 Every network is an MLP with two hidden layers of 256 and ReLU (as the
 paper's), trained on the prior dataset's keypoints by `train_baselines`
@@ -40,9 +43,7 @@ from fabric_imitation.learning.geometry import (
     to_frame,
 )
 from fabric_imitation.learning.models import Mlp
-from fabric_imitation.learning.mpc import Mpc
 from fabric_imitation.learning.priors import Normalizer
-from fabric_imitation.learning.safety import valid_actions
 from torch.nn import functional as F  # noqa: N812 (torch's own idiom)
 
 BASELINES = ("zero", "cfm", "tcn")
@@ -50,7 +51,14 @@ FORMAT = "fabric-imitation-baselines"
 VERSION = 1
 BASELINES_JSON = "baselines.json"
 BASELINES_FILE = "baselines.pt"
-NETS = ("zero_inverse", "zero_forward", "cfm_encoder", "cfm_transition", "tcn")
+NETS = (
+    "zero_inverse",
+    "zero_forward",
+    "zero_recognizer",
+    "cfm_encoder",
+    "cfm_transition",
+    "tcn",
+)
 
 
 @dc.dataclass
@@ -61,6 +69,10 @@ class BaselineTrainConfig:
     latent: int = 32  # CFM's and TCN's embedding size
     # Zero: weight of the forward-consistency term.
     consistency_weight: float = 1.0
+    # Zero's goal recognizer: a goal at most this many steps from the state
+    # (same episode) is reached, one at least this many is not.
+    recognizer_positive_steps: int = 1
+    recognizer_negative_steps: int = 3
     # CFM: InfoNCE temperature on negative squared latent distances.
     temperature: float = 1.0
     # TCN: positives at most this many steps from the anchor, negatives at
@@ -73,6 +85,22 @@ class BaselineTrainConfig:
     tcn_demo_lr: float = 3e-4
     holdout_fraction: float = 0.1  # of the episodes
     seed: int = 0
+
+    def __post_init__(self):
+        for name in ("epochs", "batch_size", "latent", "tcn_positive_steps"):
+            if getattr(self, name) < 1:
+                raise ValueError(f"{name} must be positive, got {getattr(self, name)}")
+        if not 0 <= self.recognizer_positive_steps < self.recognizer_negative_steps:
+            raise ValueError(
+                "recognizer_positive_steps must be in [0, recognizer_negative_"
+                f"steps), got {self.recognizer_positive_steps} and "
+                f"{self.recognizer_negative_steps}"
+            )
+        if not self.tcn_positive_steps < self.tcn_negative_steps:
+            raise ValueError(
+                "tcn_negative_steps must exceed tcn_positive_steps, got "
+                f"{self.tcn_negative_steps}"
+            )
 
 
 class Baselines:
@@ -89,6 +117,7 @@ class Baselines:
         self.nets = {
             "zero_inverse": Mlp(2 * m3, 6),
             "zero_forward": Mlp(m3 + 6, m3),
+            "zero_recognizer": Mlp(2 * m3, 1),
             "cfm_encoder": Mlp(m3, latent),
             "cfm_transition": Mlp(latent + 6, latent),
             "tcn": Mlp(m3, latent),
@@ -117,6 +146,16 @@ class Baselines:
         x = torch.cat([self._state(S, origin, yaw), self._state(G, origin, yaw)], -1)
         a = self.norms["action"].decode(self.nets["zero_inverse"](x))
         return rotate_actions(a, yaw)
+
+    @torch.no_grad()
+    def zero_reached(self, S, G) -> torch.Tensor:
+        """r(S, G): the goal recognizer's probability (...) that state S
+        (M, 3) has reached each goal state G (..., M, 3)."""
+        origin, yaw = self._frame(S)
+        g = self._state(G, origin, yaw)
+        s = self._state(S, origin, yaw).expand(g.shape)
+        logit = self.nets["zero_recognizer"](torch.cat([s, g], -1))
+        return torch.sigmoid(logit[..., 0])
 
     # --- CFM -----------------------------------------------------------------
 
@@ -236,6 +275,12 @@ def load_baselines(path: Path | str, *, num_keypoints: int | None = None) -> Bas
         norms=norms,
         config=description["config"],
     )
+    for name in NETS:
+        if not any(k.startswith(name + ".") for k in tensors):
+            raise InputError(
+                f"baselines {file} lack the {name} network; retrain with "
+                "`fabric-imitate train-baselines`"
+            )
     try:
         for name in NETS:
             out.nets[name].load_state_dict(
@@ -313,6 +358,60 @@ def _tcn_loss(net, norms, states, triplets, cfg, gen, batch: int = 256):
     return F.relu(d_pos - d_neg + cfg.tcn_margin).mean()
 
 
+def _episode_bounds(episode: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """First and last row (each row's) of the runs of equal `episode`."""
+    n = len(episode)
+    rows = torch.arange(n)
+    new = torch.ones(n, dtype=torch.bool)
+    new[1:] = episode[1:] != episode[:-1]
+    first = torch.cummax(torch.where(new, rows, 0), 0).values
+    last_of = torch.ones(n, dtype=torch.bool)
+    last_of[:-1] = new[1:]
+    flipped = torch.where(last_of, rows, n).flip(0)
+    last = torch.cummin(flipped, 0).values.flip(0)
+    return first, last
+
+
+def _recognizer_pairs(episode, step, n: int, cfg, gen):
+    """(state rows, goal rows, labels) of about n pairs of a sequence set
+    (each episode's rows together, in step order): half positives, the goal
+    at most recognizer_positive_steps from the state, half negatives, at
+    least recognizer_negative_steps (drawn uniformly over the episode; a
+    state without one is left out)."""
+    first, last = _episode_bounds(episode)
+    P, N = cfg.recognizer_positive_steps, cfg.recognizer_negative_steps
+    half = n // 2
+    i = torch.randint(len(episode), (half,), generator=gen)
+    j = (i + torch.randint(-P, P + 1, (half,), generator=gen)).clamp(first[i], last[i])
+    j = torch.where((step[j] - step[i]).abs() <= P, j, i)
+    k = torch.randint(len(episode), (n - half,), generator=gen)
+    span = last[k] - first[k] + 1
+    cand = first[k, None] + (
+        torch.rand(len(k), 8, generator=gen) * span[:, None]
+    ).long().clamp(max=span[:, None] - 1)
+    far = (step[cand] - step[k, None]).abs() >= N
+    has = far.any(1)
+    neg = cand[has].gather(1, far[has].float().argmax(1, keepdim=True))[:, 0]
+    states = torch.cat([i, k[has]])
+    goals = torch.cat([j, neg])
+    labels = torch.cat([torch.ones(len(i)), torch.zeros(len(neg))])
+    return states, goals, labels
+
+
+def _recognizer_logits(net, norms, states, goals):
+    """Recognizer logits (B,) of states (B, M, 3) and goals (B, M, 3), both
+    in the canonical frame of the state."""
+    origin, yaw = canonical_frame(states)
+    x = torch.cat(
+        [
+            norms["state"].encode(to_frame(P, origin, yaw).flatten(-2))
+            for P in (states, goals)
+        ],
+        -1,
+    )
+    return net(x)[..., 0]
+
+
 def train_baselines(ds, *, cfg: BaselineTrainConfig | None = None, log=print):
     """Trains Zero's, CFM's and TCN's networks on the prior dataset `ds`
     (learning/dataset.py; keypoints only). Returns Baselines with held-out
@@ -351,6 +450,14 @@ def train_baselines(ds, *, cfg: BaselineTrainConfig | None = None, log=print):
     train_mask[tr] = True
     triplets = _tcn_triplets(episode[train_mask], step[train_mask], cfg)
     tcn_states = S[train_mask]
+    seq_episode, seq_step = episode[train_mask], step[train_mask]
+
+    def recognizer_loss():
+        i, j, label = _recognizer_pairs(seq_episode, seq_step, cfg.batch_size, cfg, gen)
+        logits = _recognizer_logits(
+            nets["zero_recognizer"], norms, tcn_states[i], tcn_states[j]
+        )
+        return F.binary_cross_entropy_with_logits(logits, label)
 
     def losses(idx):
         zi = nets["zero_inverse"](torch.cat([xs[idx], xns[idx]], -1))
@@ -370,12 +477,13 @@ def train_baselines(ds, *, cfg: BaselineTrainConfig | None = None, log=print):
         for net in nets.values():
             net.train()
         perm = tr[torch.randperm(len(tr), generator=gen)]
-        total = np.zeros(5)
+        total = np.zeros(6)
         batches = 0
         for i in range(0, len(perm) - cfg.batch_size + 1, cfg.batch_size):
             idx = perm[i : i + cfg.batch_size]
             l_inv, l_fwd, l_con, l_nce = losses(idx)
-            loss = l_inv + l_fwd + cfg.consistency_weight * l_con + l_nce
+            l_rec = recognizer_loss()
+            loss = l_inv + l_fwd + cfg.consistency_weight * l_con + l_nce + l_rec
             opt.zero_grad()
             loss.backward()
             opt.step()
@@ -383,7 +491,9 @@ def train_baselines(ds, *, cfg: BaselineTrainConfig | None = None, log=print):
             tcn_opt.zero_grad()
             l_tcn.backward()
             tcn_opt.step()
-            total += [float(v.detach()) for v in (l_inv, l_fwd, l_con, l_nce, l_tcn)]
+            total += [
+                float(v.detach()) for v in (l_inv, l_fwd, l_con, l_nce, l_tcn, l_rec)
+            ]
             batches += 1
         for net in nets.values():
             net.eval()
@@ -391,7 +501,8 @@ def train_baselines(ds, *, cfg: BaselineTrainConfig | None = None, log=print):
         log(
             f"baselines epoch {epoch + 1}/{cfg.epochs}: inverse {curves[-1][0]:.4f} "
             f"forward {curves[-1][1]:.4f} consistency {curves[-1][2]:.4f} "
-            f"infonce {curves[-1][3]:.3f} triplet {curves[-1][4]:.4f}"
+            f"infonce {curves[-1][3]:.3f} triplet {curves[-1][4]:.4f} "
+            f"recognizer {curves[-1][5]:.4f}"
         )
     out.metrics = {
         **_heldout_metrics(out, S[va], Sn[va], A[va], episode[va], step[va], cfg),
@@ -399,7 +510,14 @@ def train_baselines(ds, *, cfg: BaselineTrainConfig | None = None, log=print):
         "heldout_transitions": len(va),
         "train_seconds": round(time.perf_counter() - t0, 1),
         "curves": {
-            "columns": ["inverse", "forward", "consistency", "infonce", "triplet"],
+            "columns": [
+                "inverse",
+                "forward",
+                "consistency",
+                "infonce",
+                "triplet",
+                "recognizer",
+            ],
             "per_epoch": curves,
         },
     }
@@ -408,10 +526,13 @@ def train_baselines(ds, *, cfg: BaselineTrainConfig | None = None, log=print):
 
 @torch.no_grad()
 def _heldout_metrics(b: Baselines, S, Sn, A, episode, step, cfg) -> dict:
-    """Zero: the inverse model's action error against the no-move action;
-    CFM: top-1 accuracy of the true next state among up to 256 held-out
-    ones (by predicted latent); TCN: how often the embedding puts the next step
-    nearer than a step tcn_negative_steps or more away (same episode)."""
+    """Zero: the inverse model's action error against the no-move action,
+    and the goal recognizer's accuracy on 2,000 held-out pairs (half
+    positives) against the best single threshold on the mean keypoint
+    distance (chosen on the same pairs, so optimistic for it); CFM: top-1
+    accuracy of the true next state among up to 256 held-out ones (by
+    predicted latent); TCN: how often the embedding puts the next step nearer
+    than a step tcn_negative_steps or more away (same episode)."""
     if len(S) == 0:
         return {}
     a_hat = torch.stack([b.zero_action(s, sn) for s, sn in zip(S, Sn, strict=True)])
@@ -419,6 +540,20 @@ def _heldout_metrics(b: Baselines, S, Sn, A, episode, step, cfg) -> dict:
         "zero_action_error_mm": round(1000 * float((a_hat - A).norm(dim=-1).mean()), 2),
         "mean_action_mm": round(1000 * float(A.norm(dim=-1).mean()), 2),
     }
+    i, j, label = _recognizer_pairs(
+        episode, step, 2000, cfg, torch.Generator().manual_seed(cfg.seed + 1)
+    )
+    if len(label):
+        p = torch.sigmoid(
+            _recognizer_logits(b.nets["zero_recognizer"], b.norms, S[i], S[j])
+        )
+        out["zero_recognizer_accuracy"] = round(
+            float(((p > 0.5).float() == label).float().mean()), 3
+        )
+        out["zero_recognizer_pairs"] = len(label)
+        out["zero_distance_rule_accuracy"] = _best_threshold_accuracy(
+            (S[i] - S[j]).norm(dim=-1).mean(-1), label
+        )
     n = min(256, len(S))
     hits = 0
     for i in range(n):
@@ -443,134 +578,15 @@ def _heldout_metrics(b: Baselines, S, Sn, A, episode, step, cfg) -> dict:
     return out
 
 
-# --- acting ---------------------------------------------------------------------
-
-
-class ZeroFollower:
-    """Zero at run time: subgoal j starts at demo state 1; each step the
-    goal-conditioned inverse model moves towards it, and j advances when the
-    state is within `reach` (mean keypoint distance [m]) of it or after
-    `patience` steps on it; the episode ends after the last demo state."""
-
-    def __init__(
-        self,
-        baselines: Baselines,
-        demo_states,
-        *,
-        max_step: float,
-        reach: float = 0.02,
-        patience: int = 3,
-    ):
-        self.b = baselines
-        self.states = torch.as_tensor(np.asarray(demo_states), dtype=torch.float32)
-        self.T = len(self.states)
-        self.max_step, self.reach, self.patience = max_step, reach, patience
-
-    def decide(self, S, progress: int, tries: int):
-        """(action (6) or None when done, subgoal, tries on it)."""
-        j = max(1, progress)
-        while j < self.T and (
-            (S - self.states[j]).norm(dim=-1).mean() < self.reach
-            or tries >= self.patience
-        ):
-            j, tries = j + 1, 0
-        if j >= self.T:
-            return None, self.T - 1, 0
-        a = self.b.zero_action(S, self.states[j]).clamp(-self.max_step, self.max_step)
-        return a, j, tries + 1
-
-
-class CfmPlanner:
-    """CFM at run time: progress J is the demo state nearest in latent space
-    (searched from J - 1 to J + 2); of `num_samples` valid actions (uniform
-    in the step bounds, the safety rules with the grasped corners moved),
-    the one whose predicted latent is nearest the latent of demo state J + 1;
-    the episode ends when J reaches the last demo state."""
-
-    def __init__(
-        self,
-        baselines: Baselines,
-        demo_states,
-        *,
-        safety,
-        safety_ctx,
-        num_samples: int = 500,
-    ):
-        self.b = baselines
-        self.states = torch.as_tensor(np.asarray(demo_states), dtype=torch.float32)
-        self.T = len(self.states)
-        self.safety, self.ctx = safety, safety_ctx
-        self.num_samples = num_samples
-
-    def progress(self, S, previous: int) -> int:
-        lo, hi = max(0, previous - 1), min(self.T, previous + 3)
-        z = self.b.cfm_latent(torch.cat([S[None], self.states[lo:hi]]), S)
-        return lo + int((z[1:] - z[0]).norm(dim=-1).argmin())
-
-    def decide(self, S, previous: int, pose, seed: int):
-        """(action (6) or None when done or no valid action, J, valid count)."""
-        J = self.progress(S, previous)
-        if J >= self.T - 1:
-            return None, J, 0
-        gen = torch.Generator().manual_seed(seed)
-        b = self.safety.max_step
-        A = (torch.rand(self.num_samples, 6, generator=gen) * 2 - 1) * b
-        ctx = dc.replace(self.ctx, frame_pose=np.asarray(pose, float))
-        ok = valid_actions(S.expand(len(A), *S.shape), A, self.safety, ctx)
-        if not ok.any():
-            return None, J, 0
-        A = A[ok]
-        target = self.b.cfm_latent(self.states[J + 1], S)
-        d = (self.b.cfm_predict(S, A) - target).norm(dim=-1)
-        return A[d.argmin()], J, int(ok.sum())
-
-
-class TcnMpc(Mpc):
-    """The method's sampling planner, action prior and safety rules with the
-    TCN reward: minus the embedding distance of each predicted state to the
-    time-aligned demo state (control step k + i + 1 for rollout step i, the
-    last one after the demo's end). Progress is the time step; the episode
-    ends once the demo's time is up and the state is no further from the
-    last demo state in the embedding than the demo's own last step was, or
-    at the step cap."""
-
-    def __init__(self, *, baselines: Baselines, **kwargs):
-        super().__init__(**kwargs)
-        self.b = baselines
-        self._step = 0
-        states = self.demo.states
-        z = self.b.tcn_embed(states[-2:], states[-1]) if self.demo.T > 1 else None
-        self._end_distance = float((z[0] - z[1]).norm()) if z is not None else 0.0
-
-    def finished(self, S, steps: int) -> bool:
-        if steps < self.demo.T - 1:
-            return False
-        last = self.demo.states[-1]
-        z = self.b.tcn_embed(torch.stack([S, last]), S)
-        return float((z[0] - z[1]).norm()) <= self._end_distance
-
-    def _aligned(self, i) -> torch.Tensor:
-        return self.demo.states[min(self._step + i + 1, self.demo.T - 1)]
-
-    def current_progress(self, S, step, previous_progress):
-        self._step = step
-        return min(step, self.demo.T - 1)
-
-    def subgoal(self, s, window, i):
-        return self._aligned(i)[None].expand(len(s), -1, -1)
-
-    @torch.no_grad()
-    def rollout(self, S, X, window):
-        cfg = self.config
-        cost = torch.zeros(len(X))
-        reward = torch.zeros(len(X))
-        for i, (s, a, s_next) in enumerate(self._predicted_steps(S, X)):
-            ok = valid_actions(s, a, self.safety, self.ctx, S_next=s_next)
-            cost += (~ok).float()
-            goal = self._aligned(i)
-            z = self.b.tcn_embed(torch.cat([s_next, goal[None]]), S)
-            reward -= cfg.gamma**i * (z[:-1] - z[-1]).norm(dim=-1)
-        return reward, cost
+def _best_threshold_accuracy(distance: torch.Tensor, label: torch.Tensor) -> float:
+    """Accuracy of the best rule "reached if distance <= threshold"."""
+    order = distance.argsort()
+    y = label[order]
+    # Threshold after the k nearest: those k say reached, the rest not.
+    right = torch.cat([torch.zeros(1), y.cumsum(0)]) + torch.cat(
+        [(1 - y).flip(0).cumsum(0).flip(0), torch.zeros(1)]
+    )
+    return round(float(right.max()) / len(y), 3)
 
 
 def BaselinesSummary(b: Baselines) -> dict:

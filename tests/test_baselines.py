@@ -1,24 +1,35 @@
-"""The Zero, CFM and TCN baselines (learning/baselines.py): training on a
-small synthetic prior dataset, checkpoints, and each one's run-time rule."""
+"""The Zero, CFM and TCN baselines (learning/baselines.py,
+learning/baseline_policies.py): training on a small synthetic prior dataset,
+checkpoints, the driver's limits, each one's run-time rule, and their
+independence from the paper's contribution (safe set, action prior)."""
 
 import hashlib
 import json
+import math
 import subprocess
 import types
 
 import numpy as np
 import pytest
 import torch
+from fabric_imitation.learning import baseline_policies, demo_learning, mpc, safety
+from fabric_imitation.learning.baseline_policies import (
+    CfmPlanner,
+    TcnConfig,
+    TcnMpc,
+    TcnPlanner,
+    ZeroConfig,
+    ZeroFollower,
+    aligned_frame,
+)
 from fabric_imitation.learning.baselines import (
     BaselineTrainConfig,
-    CfmPlanner,
-    TcnMpc,
-    ZeroFollower,
     load_baselines,
     train_baselines,
 )
 from fabric_imitation.learning.demo_learning import DemoModel, RewardConfig
 from fabric_imitation.learning.errors import InputError
+from fabric_imitation.learning.limits import DriverLimits, limit_actions
 from fabric_imitation.learning.mpc import MpcConfig
 from fabric_imitation.learning.safety import SafetyConfig, SafetyContext, valid_actions
 
@@ -87,6 +98,38 @@ def test_cfm_and_tcn_learn_their_contrasts(trained):
     assert b.metrics["tcn_near_before_far"] > 0.8
 
 
+def test_goal_recognizer_learns_when_a_goal_is_reached(trained):
+    b, cfg = trained
+    curves = b.metrics["curves"]
+    loss = [row[curves["columns"].index("recognizer")] for row in curves["per_epoch"]]
+    assert loss[-1] < 0.8 * loss[0], loss
+    assert b.metrics["zero_recognizer_accuracy"] > 0.7
+    # A goal one step of the synthetic cloth away is reached, six are not.
+    s = square([0.0, 0.0], 0.4)
+    near, far = s.copy(), s.copy()
+    near[:, 1] -= 0.005
+    far[:, 1] -= 0.12
+    p = b.zero_reached(torch.tensor(s), torch.tensor(np.stack([s, near, far])))
+    assert p.shape == (3,)
+    assert p[0] > 0.5 and p[1] > 0.5 and p[2] < 0.5, p
+
+
+def test_recognizer_labels_come_from_time_in_the_episode():
+    from fabric_imitation.learning.baselines import _recognizer_pairs
+
+    episode = torch.tensor([0] * 10 + [1] * 3 + [2] * 12)
+    step = torch.cat([torch.arange(10), torch.arange(3), torch.arange(12)])
+    cfg = BaselineTrainConfig(recognizer_positive_steps=1, recognizer_negative_steps=4)
+    i, j, label = _recognizer_pairs(
+        episode, step, 4000, cfg, torch.Generator().manual_seed(0)
+    )
+    assert (episode[i] == episode[j]).all()
+    gap = (step[i] - step[j]).abs()
+    assert (gap[label == 1] <= 1).all() and (gap[label == 0] >= 4).all()
+    assert not (episode[i[label == 0]] == 1).any()  # 3 steps: no negative
+    assert 0.45 < float(label.mean()) < 0.6
+
+
 def test_checkpoint_round_trip_gives_the_trained_networks(trained, tmp_path):
     b, _ = trained
     b.save(tmp_path)
@@ -94,11 +137,39 @@ def test_checkpoint_round_trip_gives_the_trained_networks(trained, tmp_path):
     s = torch.tensor(square([0.0, 0.1], 0.3), dtype=torch.float32)
     g = s + torch.tensor([0.01, 0.0, 0.0])
     A = torch.rand(5, 6) * 0.06 - 0.03
-    assert torch.equal(b.zero_action(s, g), loaded.zero_action(s, g))
-    assert torch.equal(b.cfm_predict(s, A), loaded.cfm_predict(s, A))
-    assert torch.equal(b.tcn_embed(g[None], s), loaded.tcn_embed(g[None], s))
+    torch.testing.assert_close(
+        b.zero_action(s, g), loaded.zero_action(s, g), rtol=0, atol=0
+    )
+    torch.testing.assert_close(
+        b.zero_reached(s, torch.stack([s, g])),
+        loaded.zero_reached(s, torch.stack([s, g])),
+        rtol=0,
+        atol=0,
+    )
+    torch.testing.assert_close(
+        b.cfm_predict(s, A), loaded.cfm_predict(s, A), rtol=0, atol=0
+    )
+    torch.testing.assert_close(
+        b.tcn_embed(g[None], s), loaded.tcn_embed(g[None], s), rtol=0, atol=0
+    )
     with pytest.raises(InputError, match="use 8 keypoints, the scenario uses 6"):
         load_baselines(tmp_path, num_keypoints=6)
+
+
+def test_a_checkpoint_without_the_goal_recognizer_is_refused(trained, tmp_path):
+    b, _ = trained
+    b.save(tmp_path)
+    tensors = torch.load(tmp_path / "baselines.pt", weights_only=True)
+    tensors = {k: v for k, v in tensors.items() if not k.startswith("zero_recognizer.")}
+    torch.save(tensors, tmp_path / "baselines.pt")
+    description = json.loads((tmp_path / "baselines.json").read_text())
+    description["tensors"]["sha256"] = hashlib.sha256(
+        (tmp_path / "baselines.pt").read_bytes()
+    ).hexdigest()
+    (tmp_path / "baselines.json").write_text(json.dumps(description))
+    with pytest.raises(InputError, match="lack the zero_recognizer network") as e:
+        load_baselines(tmp_path)
+    assert "\n" not in str(e.value) and "train-baselines" in str(e.value)
 
 
 class _RunsCode:
@@ -131,84 +202,249 @@ def test_a_baselines_file_that_would_run_code_is_refused(trained, tmp_path):
         load_baselines(tmp_path / "missing")
 
 
+def _limits(max_step=0.03):
+    return DriverLimits(
+        max_step=max_step,
+        workspace_lower=[-0.5, -0.5, -0.01],
+        workspace_upper=[0.5, 0.5, 0.5],
+    )
+
+
+def test_driver_limits_bound_each_axis_and_keep_targets_in_the_box():
+    limits = _limits()
+    g = torch.tensor([[0.0, 0.0, 0.1], [0.2, 0.0, 0.1]])
+    A = torch.tensor([[0.05, -0.01, 0.0, 0.01, 0.02, -0.04]])
+    np.testing.assert_allclose(
+        limit_actions(g, A, limits)[0], [0.03, -0.01, 0, 0.01, 0.02, -0.03], atol=1e-7
+    )
+    # Near the box's +x face and the table: the targets stop at them.
+    g = torch.tensor([[0.49, 0.0, 0.01], [0.0, 0.0, 0.2]])
+    A = torch.tensor([0.03, 0.0, -0.03, 0.0, 0.0, 0.03])
+    np.testing.assert_allclose(
+        limit_actions(g, A, limits), [0.01, 0, -0.01, 0, 0, 0.03], atol=1e-6
+    )
+    # States in an object frame turned 90 degrees at x = 0.3: its +y is world
+    # -x, so world x >= -0.5 stops a gripper at object y = 0.8.
+    pose = [0.3, 0.0, math.pi / 2]
+    g = torch.tensor([[0.0, 0.79, 0.1], [0.0, 0.0, 0.1]])
+    A = torch.tensor([0.0, 0.03, 0.0, 0.0, 0.03, 0.0])
+    np.testing.assert_allclose(
+        limit_actions(g, A, limits, pose), [0, 0.01, 0, 0, 0.03, 0], atol=1e-6
+    )
+    # A gripper outside the box comes back at most max_step per axis.
+    g = torch.tensor([[0.7, 0.0, 0.1], [0.0, 0.0, 0.1]])
+    out = limit_actions(g, torch.zeros(6), limits)
+    np.testing.assert_allclose(out, [-0.03, 0, 0, 0, 0, 0], atol=1e-6)
+    with pytest.raises(ValueError, match="max_step"):
+        _limits(0.0)
+
+
 class _TowardsGoal:
-    """A stand-in inverse model: each gripper straight to its corner's goal."""
+    """A stand-in Zero: each gripper straight to its corner's goal; a goal is
+    reached within 5 mm (mean keypoint distance)."""
 
     def zero_action(self, S, G):
         return torch.cat([G[0] - S[0], G[2] - S[2]])
 
+    def zero_reached(self, S, G):
+        d = (G - S).norm(dim=-1).mean(-1)
+        return (d < 0.005).float()
 
-def test_zero_steps_through_the_demo_states_as_subgoals():
+
+def test_zero_moves_to_the_next_frame_when_the_recognizer_says_reached():
     demo = np.stack([square([0.0, 0.1 - 0.02 * k]) for k in range(4)])
-    follower = ZeroFollower(_TowardsGoal(), demo, max_step=0.03, reach=0.005)
+    follower = ZeroFollower(
+        _TowardsGoal(), demo, limits=_limits(), config=ZeroConfig(max_tries=3)
+    )
     S = torch.tensor(demo[0], dtype=torch.float32)
-    a, j, tries = follower.decide(S, 0, 0)
-    assert j == 1 and tries == 1
-    np.testing.assert_allclose(a.numpy(), [0, -0.02, 0, 0, -0.02, 0], atol=1e-6)
-    # At subgoal 1: it heads for 2.
-    a, j, tries = follower.decide(torch.tensor(demo[1], dtype=torch.float32), j, tries)
-    assert j == 2 and tries == 1
-    # Not reached after `patience` tries: the next subgoal anyway.
-    _, j, tries = follower.decide(S, 2, 3)
-    assert j == 3 and tries == 1
-    # At the last state: done.
-    a, j, _ = follower.decide(torch.tensor(demo[3], dtype=torch.float32), 3, 1)
-    assert a is None and j == 3
+    step = follower.decide(S, 0, 0)
+    assert step.subgoal == 1 and step.tries == 1
+    np.testing.assert_allclose(step.action, [0, -0.02, 0, 0, -0.02, 0], atol=1e-6)
+    # Not reached: the same subgoal again.
+    step = follower.decide(S, 1, 1)
+    assert step.subgoal == 1 and step.tries == 2
+    # Reached frame 1: it heads for 2 (only the subgoal is checked: a state
+    # past it, at frame 2, has not reached it).
+    step = follower.decide(torch.tensor(demo[1], dtype=torch.float32), 1, 2)
+    assert step.subgoal == 2 and step.tries == 1
+    step = follower.decide(torch.tensor(demo[2], dtype=torch.float32), 1, 2)
+    assert step.subgoal == 1 and step.tries == 3
+    # The cap: after max_tries on a subgoal, the next one anyway.
+    step = follower.decide(S, 2, 3)
+    assert step.subgoal == 3 and step.tries == 1
+    # Far moves are bounded per axis.
+    np.testing.assert_allclose(step.action, [0, -0.03, 0, 0, -0.03, 0], atol=1e-6)
+    # The last frame reached: done by the recognizer ...
+    step = follower.decide(torch.tensor(demo[3], dtype=torch.float32), 3, 1)
+    assert step.action is None and step.subgoal == 3 and not step.gave_up
+    # ... or the last subgoal out of tries.
+    step = follower.decide(S, 3, 3)
+    assert step.action is None and step.gave_up
 
 
-def _rules():
-    safety = SafetyConfig()
+def test_cfm_heads_for_the_demos_final_frame_in_latent_space(trained):
+    b, _ = trained
+    demo = np.stack([square([0.0, 0.1 - 0.02 * k]) for k in range(5)])
+    planner = CfmPlanner(b, demo, limits=_limits())
+    S = torch.tensor(demo[0], dtype=torch.float32)
+    a, nearest = planner.decide(S, [0.0, 0.0, 0.0], seed=1)
+    assert nearest == 0
+    assert a.abs().max() <= 0.03 + 1e-6
+    # The chosen move's predicted latent is the nearest of the samples' to
+    # the final frame's (the samples as the driver executes them: the
+    # grippers on the table top do not go lower).
+    gen = torch.Generator().manual_seed(1)
+    A = (torch.rand(planner.config.num_samples, 6, generator=gen) * 2 - 1) * 0.03
+    A = limit_actions(S[[0, 2]], A, _limits(), [0.0, 0.0, 0.0])
+    assert (A[:, [2, 5]] >= 0).all()
+    goal = b.cfm_latent(torch.tensor(demo[-1], dtype=torch.float32), S)
+    d = (b.cfm_predict(S, A) - goal).norm(dim=-1)
+    torch.testing.assert_close(a, A[d.argmin()], atol=1e-6, rtol=0)
+    # Towards the final frame: the grippers' mean move points along -y.
+    assert (a[1] + a[4]) / 2 < 0, a
+    assert not planner.finished(S)
+    assert planner.finished(torch.tensor(demo[-1], dtype=torch.float32))
+
+
+def test_tcn_time_alignment():
+    # One demo frame per control step (H = T - 1): frame t, then the last.
+    assert [aligned_frame(t, 5, 4) for t in range(7)] == [0, 1, 2, 3, 4, 4, 4]
+    # A demo of 5 frames over 8 control steps: every other step a new frame,
+    # halves rounded up.
+    assert [aligned_frame(t, 5, 8) for t in range(10)] == [0, 1, 1, 2, 2, 3, 3, 4, 4, 4]
+    # 9 frames over 4 steps: every other frame.
+    assert [aligned_frame(t, 9, 4) for t in range(6)] == [0, 2, 4, 6, 8, 8]
+
+
+class _Centroid:
+    """A stand-in TCN embedding: the cloth's centroid."""
+
+    def tcn_embed(self, P, S):
+        return torch.as_tensor(P, dtype=torch.float32).mean(-2)
+
+
+class _Slides:
+    """A stand-in f_D: the cloth slides with the mean of the grippers'
+    moves; no inverse model."""
+
+    def forward(self, S, A):
+        return S + ((A[..., :3] + A[..., 3:]) / 2)[..., None, :]
+
+    def inverse(self, S, S_next):
+        raise AssertionError("the baselines have no action prior from f_I")
+
+
+def test_tcn_searches_f_d_rollouts_for_the_time_aligned_frame():
+    demo = np.stack([square([0.0, 0.1 - 0.02 * k]) for k in range(6)])
+    planner = TcnPlanner(
+        _Centroid(), _Slides(), demo, limits=_limits(), config=TcnConfig(horizon=2)
+    )
+    assert planner.H == 5
+    S = torch.tensor(demo[2], dtype=torch.float32)
+    a, aligned, iterations = planner.decide(S, 2, [0.0, 0.0, 0.0], seed=0)
+    assert aligned == 2 and iterations == 3
+    # The frames of steps 3 and 4 lie 2 and 4 cm along -y: the mean move
+    # heads there, bounded per axis.
+    mean = (a[:3] + a[3:]) / 2
+    assert -0.03 <= float(mean[1]) < -0.01 and abs(float(mean[0])) < 0.01, a
+    assert a.abs().max() <= 0.03 + 1e-6
+    last = torch.tensor(demo[-1], dtype=torch.float32)
+    assert not planner.finished(last, 4)  # the demo's time is not up
+    assert planner.finished(last, 5)
+    assert not planner.finished(S, 5)
+
+
+def test_tcn_mpc_is_the_tcn_reward_on_our_planner(trained):
+    b, cfg = trained
+    rules = SafetyConfig()
     ctx = SafetyContext(
         edge_length=0.3,
         workspace_lower=np.array([-0.5, -0.5, -0.01]),
         workspace_upper=np.array([0.5, 0.5, 0.5]),
     )
-    return safety, ctx
-
-
-def test_cfm_picks_a_valid_action_towards_the_next_demo_state(trained):
-    b, _ = trained
-    safety, ctx = _rules()
-    demo = np.stack([square([0.0, 0.1 - 0.02 * k]) for k in range(5)])
-    planner = CfmPlanner(b, demo, safety=safety, safety_ctx=ctx, num_samples=300)
-    S = torch.tensor(demo[0], dtype=torch.float32)
-    a, J, valid = planner.decide(S, 0, [0.0, 0.0, 0.0], seed=1)
-    assert J == 0 and valid > 0
-    assert bool(valid_actions(S, a, safety, ctx))
-    # Towards the demo's next state: the grippers' mean move points along -y.
-    assert (a[1] + a[4]) / 2 < 0, a
-    # At the demo's last state the episode ends.
-    a, J, _ = planner.decide(
-        torch.tensor(demo[-1], dtype=torch.float32), 4, [0, 0, 0], 1
-    )
-    assert a is None and J == 4
-
-
-def test_tcn_reward_is_aligned_in_time_and_ends_after_the_demo(trained):
-    b, cfg = trained
-    safety, ctx = _rules()
     demo = np.stack([square([0.0, 0.1 - 0.03 * k]) for k in range(6)])
     b_demo, _ = b.tcn_on_demo(demo, cfg)
     model = DemoModel(demo, registration=None, config=RewardConfig())
-    mpc = TcnMpc(
+    planner = TcnMpc(
         baselines=b_demo,
         dynamics=None,
         demo=model,
-        safety=safety,
+        safety=rules,
         safety_ctx=ctx,
         config=MpcConfig(horizon=2),
     )
     S = torch.tensor(demo[2], dtype=torch.float32)
-    assert mpc.current_progress(S, 2, None) == 2
+    assert planner.current_progress(S, 2, None) == 2
     # Rollout step i is compared with demo state step + i + 1.
-    assert torch.equal(mpc._aligned(0), model.states[3])
-    assert torch.equal(mpc._aligned(5), model.states[5])  # after the end: the last
-    assert not mpc.finished(torch.tensor(demo[-1], dtype=torch.float32), 2)
-    assert mpc.finished(torch.tensor(demo[-1], dtype=torch.float32), 5)
+    assert torch.equal(planner._aligned(0), model.states[3])
+    assert torch.equal(planner._aligned(5), model.states[5])  # after the end: the last
+    assert not planner.finished(torch.tensor(demo[-1], dtype=torch.float32), 2)
+    assert planner.finished(torch.tensor(demo[-1], dtype=torch.float32), 5)
+
+
+def _forbid_everything():
+    """Rules no action passes: rule 1's band of grasped-edge lengths is
+    empty, rule 2 allows no direction, and the object's box (rule 4) covers
+    the whole workspace."""
+    rules = SafetyConfig(
+        tau_c=0.99999, tau_f=1.0, tau_d_deg=0.01, estimate_margin_deg=0.0
+    )
+    ctx = SafetyContext(
+        edge_length=0.3,
+        workspace_lower=np.array([-0.5, -0.5, -0.01]),
+        workspace_upper=np.array([0.5, 0.5, 0.5]),
+        object_size=np.array([5.0, 5.0, 5.0]),
+        far_corners_may_hang=True,
+        far_corners_may_drape=True,
+    )
+    return rules, ctx
+
+
+def _raises(*args, **kwargs):
+    raise AssertionError("the baselines must not use the paper's contribution")
+
+
+@pytest.mark.parametrize("name", ["zero", "cfm", "tcn"])
+def test_each_baseline_acts_where_the_safe_set_is_empty(trained, name, monkeypatch):
+    """Fault injection: with rules that forbid every action and the safe
+    set, the action priors (f_I, the grasped corners, the MPC's) and the
+    demo's corner tracking all raising, each baseline still acts, within
+    the driver's limits (built from the same safety objects, as
+    MakeImitationDiagram does)."""
+    b, cfg = trained
+    rules, ctx = _forbid_everything()
+    demo = np.stack([square([0.0, 0.1 - 0.02 * k]) for k in range(6)])
+    S = torch.tensor(demo[1], dtype=torch.float32)
+    A = (torch.rand(5000, 6, generator=torch.Generator().manual_seed(0)) * 2 - 1) * 0.03
+    assert not valid_actions(S.expand(len(A), -1, -1), A, rules, ctx).any()
+    assert not valid_actions(S, torch.zeros(6), rules, ctx)
+    limits = DriverLimits.FromSafety(rules, ctx)
+    for module in (safety, mpc, baseline_policies):
+        for attr in ("valid_actions", "rule_violations"):
+            if hasattr(module, attr):
+                monkeypatch.setattr(module, attr, _raises)
+    for attr in ("action_prior", "solve", "rollout", "_nearest_valid"):
+        monkeypatch.setattr(mpc.Mpc, attr, _raises)
+    monkeypatch.setattr(demo_learning, "track_grasped_corners", _raises)
+    for attr in ("progress", "reward", "done"):
+        monkeypatch.setattr(DemoModel, attr, _raises)
+    pose = [0.05, -0.1, 0.3]
+    if name == "zero":
+        step = ZeroFollower(b, demo, limits=limits).decide(S, 0, 0, pose)
+        action = step.action
+    elif name == "cfm":
+        action, _ = CfmPlanner(b, demo, limits=limits).decide(S, pose, seed=0)
+    else:
+        b_demo, _ = b.tcn_on_demo(demo, cfg)
+        planner = TcnPlanner(b_demo, _Slides(), demo, limits=limits)
+        action, _, _ = planner.decide(S, 1, pose, seed=0)
+    assert action is not None and action.shape == (6,)
+    assert torch.isfinite(action).all()
+    assert 1e-4 < float(action.abs().max()) <= rules.max_step + 1e-6, action
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("controller", ["zero", "cfm", "tcn"])
+@pytest.mark.parametrize("controller", ["zero", "cfm", "tcn", "tcn_mpc"])
 def test_each_shipped_baseline_acts_in_a_short_episode(controller):
     """The shipped networks drive the station for a few steps on box (a
     coarse cloth, a step cap of 7) and the episode is scored."""
