@@ -515,8 +515,11 @@ def _add_anchor(plant: MultibodyPlant, scenario: Scenario, side: str, p_W0: np.n
     )
     # Collision role only (the cameras see what they saw before): a Franka
     # hand holding the corner from above, so the table and the task object
-    # stop the anchor as they would stop the hand.
-    for k, capsule in enumerate(ANCHOR_CAPSULES):
+    # stop the anchor as they would stop the hand. The prior scene, which has
+    # no object, keeps its grippers as the shipped priors were collected
+    # with: free over the table (its safe actions keep them above it).
+    solid = scenario.object.kind != "none"
+    for k, capsule in enumerate(ANCHOR_CAPSULES if solid else ()):
         a, b = np.array(capsule.p_a), np.array(capsule.p_b)
         X_AG = RigidTransform(
             ANCHOR_HAND_YAW @ RotationMatrix.MakeFromOneVector(b - a, 2),

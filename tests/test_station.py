@@ -28,6 +28,7 @@ EXPECTED_PORTS = {
         "object.pose",
         "cloth.positions",
         "cloth.keypoints",
+        "grippers.object_contact",  # with a task object
     },
 }
 
