@@ -89,6 +89,14 @@ class MpcConfig:
             raise ValueError(f"mpc.elites must be in 1..num_samples, got {self.elites}")
         if not 0 < self.beta <= 1:
             raise ValueError(f"mpc.beta must be in (0, 1], got {self.beta}")
+        if self.max_iterations < 1:
+            raise ValueError(
+                f"mpc.max_iterations must be at least 1, got {self.max_iterations}"
+            )
+        if not self.tau_conv > 0:
+            raise ValueError(f"mpc.tau_conv must be positive, got {self.tau_conv}")
+        if not self.sigma0 > 0:
+            raise ValueError(f"mpc.sigma0 must be positive, got {self.sigma0}")
         if self.execute not in ("best", "mean"):
             raise ValueError(f"mpc.execute must be best or mean, got {self.execute!r}")
         if self.prior not in ("inverse", "grasp"):

@@ -45,6 +45,12 @@ def test_inline_overrides_merge_into_nested_fields():
     "kwargs, message",
     [
         (dict(scenario_name="boxx"), "unknown scenario 'boxx'"),
+        (
+            dict(scenario_name="box", scenario_text="mpc: {max_iterations: 0}"),
+            "mpc.max_iterations",
+        ),
+        (dict(scenario_name="box", scenario_text="mpc: {tau_conv: 0}"), "mpc.tau_conv"),
+        (dict(scenario_name="box", scenario_text="mpc: {elites: 501}"), "mpc.elites"),
         (dict(scenario_name="box", scenario_text="cloth: {frction: 1.0}"), "frction"),
         (
             dict(scenario_name="box", scenario_text="object: {pose: [0.7, 0.0, 0.0]}"),
