@@ -494,7 +494,8 @@ def _add_evaluate(p):
         nargs="+",
         default=["ours"],
         help="ours; the ablations no_mpc, no_prior, no_cost; the baselines "
-        "zero, cfm, tcn (trained by train-baselines), replay; scripted",
+        "zero, cfm, tcn (trained by train-baselines); extra rows no_mpc_safe, "
+        "tcn_mpc, replay; scripted",
     )
     p.add_argument(
         "--protocol",
