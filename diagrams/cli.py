@@ -700,10 +700,21 @@ def _report(args) -> dict:
     return Report(runs=args.runs, out=args.out)
 
 
+# The referee's rules for a violation (diagrams/referee.py's ON_VIOLATION;
+# repeated here so that a bad flag is refused before torch is imported).
+ON_VIOLATION = ("stop", "count")
+
+
 def _CheckArgs(args) -> None:
     """What can be checked before any work starts (and before Drake or torch
     are imported): the YAML of --scenario_text, counts that must be
-    positive, and that output files can be created where asked."""
+    positive, --on-violation, and that output files can be created where
+    asked."""
+    rule = getattr(args, "on_violation", None)
+    if rule is not None and rule not in ON_VIOLATION:
+        raise InputError(
+            f"unknown --on-violation {rule!r}; use {' or '.join(ON_VIOLATION)}"
+        )
     text = getattr(args, "scenario_text", "")
     if text and text.strip():
         import yaml

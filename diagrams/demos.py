@@ -10,11 +10,10 @@ import dataclasses as dc
 import math
 
 import numpy as np
-from fabric_imitation.diagrams.station import GraspCorners
+from fabric_imitation.diagrams.station import GraspCapsules, GraspCorners
 from fabric_imitation.learning.errors import InputError
 from fabric_imitation.learning.state import object_to_world
 from fabric_imitation.scenarios.schema import Scenario, yaw_rad
-from fabric_imitation.systems.gripper_contact import PandaHandCapsules
 
 
 @dc.dataclass
@@ -46,7 +45,7 @@ def _cover_waypoints(scenario: Scenario, start: np.ndarray) -> list[np.ndarray]:
     lift[:, 2] = sz + 0.06
     # The hand above the fingers must not come down on the box's top edge,
     # whichever way the box is turned under it.
-    lowest = max(0.015, sz + HAND_CLEARANCE - HandHeight())
+    lowest = max(0.015, sz + HAND_CLEARANCE - HandHeight(scenario))
     return [
         lift,
         _pair(scenario, w, sy / 2 + 0.05, sz + 0.08),
@@ -60,16 +59,16 @@ def _cover_waypoints(scenario: Scenario, start: np.ndarray) -> list[np.ndarray]:
 HAND_CLEARANCE = 0.005
 
 
-def HandReach() -> float:
+def HandReach(scenario: Scenario) -> float:
     """Horizontal reach [m] of the gripper hand from the grasped point."""
-    hand = PandaHandCapsules()[0]
+    hand = GraspCapsules(scenario)[0]
     return float(np.hypot(*hand.p_a[:2])) + hand.radius
 
 
-def HandHeight() -> float:
+def HandHeight(scenario: Scenario) -> float:
     """Height [m] of the gripper hand's lowest point above the grasped point
     (the hand's capsule, not the fingers that hold the cloth)."""
-    hand = PandaHandCapsules()[0]
+    hand = GraspCapsules(scenario)[0]
     return min(hand.p_a[2], hand.p_b[2]) - hand.radius
 
 
@@ -100,7 +99,7 @@ def _hang_waypoints(scenario: Scenario, start: np.ndarray) -> list[np.ndarray]:
     r = high - sz
     # The arc ends where the hand, turned any way about the vertical, stays
     # HAND_CLEARANCE in front of the plate.
-    reach = HandReach() + HAND_CLEARANCE
+    reach = HandReach(scenario) + HAND_CLEARANCE
     last = 180.0 - math.degrees(math.asin(min(reach / r, 1.0)))
     arc = [
         _pair(scenario, w, -sy / 2 - r * math.sin(a), sz + r * math.cos(a))

@@ -16,7 +16,6 @@ import time
 from pathlib import Path
 
 import numpy as np
-from fabric_imitation.diagrams.station import CheckGrippersClear
 from fabric_imitation.learning.errors import InputError
 
 # Method -> (controller of MakeImitationDiagram, changes to the scenario's
@@ -144,7 +143,7 @@ def ClothStarts(
                 round(rng.uniform(-CLOTH_START_TURN_DEG, CLOTH_START_TURN_DEG), 2),
             ]
             try:
-                CheckGrippersClear(
+                _CheckGrippersClear(
                     TrialScenario(scenario_name, scenario_text, pose, start)
                 )
             except InputError:
@@ -179,7 +178,7 @@ def TrialPoses(
             round(p[2] + yaw, 2),
         ]
         try:
-            CheckGrippersClear(TrialScenario(scenario_name, scenario_text, pose))
+            _CheckGrippersClear(TrialScenario(scenario_name, scenario_text, pose))
         except InputError:
             continue
         poses.append(pose)
@@ -231,7 +230,7 @@ def _run_trial(job: dict) -> dict:
     )
     t0 = time.perf_counter()
     if job["method"] == "scripted":
-        summary = ScriptedTrial(scenario)
+        summary = ScriptedTrial(scenario, on_violation=job.get("on_violation", "stop"))
     else:
         from fabric_imitation.diagrams.imitation import Imitate
 
@@ -269,10 +268,17 @@ def _run_trial(job: dict) -> dict:
     }
 
 
-def ScriptedTrial(scenario) -> dict:
+def _CheckGrippersClear(scenario) -> None:
+    from fabric_imitation.diagrams.station import CheckGrippersClear
+
+    CheckGrippersClear(scenario)
+
+
+def ScriptedTrial(scenario, *, on_violation: str = "stop") -> dict:
     """The task's scripted demo at the scenario's poses, judged as a method's
     trial: success, and the referee's rule breaks on the true cloth and the
-    gripper-object contacts (it is never stopped: the demo is the ceiling)."""
+    gripper-object contacts. It is never cut short (the demo is the
+    ceiling), but under "stop" a break or a contact makes it a failure."""
     from fabric_imitation.diagrams.demos import ScriptedDemoPlan
     from fabric_imitation.diagrams.referee import JudgeTransitions, TaskReferee
     from fabric_imitation.diagrams.simulation import OpenLoopRun
@@ -318,6 +324,10 @@ def ScriptedTrial(scenario) -> dict:
             run.station_context
         )
         summary["collisions"] = int(contact[0])
+    if on_violation == "stop" and (
+        summary["rule_breaks_true"]["any"] or summary.get("collisions")
+    ):
+        summary["success"] = False
     return summary
 
 
@@ -413,7 +423,10 @@ def CodeFingerprint() -> str:
         p
         for folder in ("diagrams", "systems", "learning", "scenarios")
         for p in (root / folder).rglob("*")
-        if p.suffix in (".py", ".yaml") and "__pycache__" not in p.parts
+        if p.suffix in (".py", ".yaml")
+        and "__pycache__" not in p.parts
+        and "demos" not in p.parts  # the demo's own fingerprint covers it
+        and p.name != "report.py"  # reads trial lines, makes none
     ]
     return _hash_files(files, root)
 
@@ -505,7 +518,7 @@ def Evaluate(
     if unknown:
         raise InputError(f"unknown method(s) {unknown}; known: {', '.join(METHODS)}")
     out = Path(out)
-    done = {}
+    done, resumed = {}, []
     if out.exists():
         for line in out.read_text().splitlines():
             try:
@@ -518,6 +531,7 @@ def Evaluate(
                 and row.get("on_violation") == on_violation
                 and row.get("pose_seed") == seed
             ):
+                resumed.append(row)
                 done[(row["scenario"], row["method"], row["trial"])] = row
     pose_lists = {
         name: ProtocolPoses(
@@ -535,6 +549,16 @@ def Evaluate(
         )
         for name in scenario_names
     }
+    for row in resumed:
+        if row["scenario"] in fingerprints and (
+            row.get("fingerprint") != fingerprints[row["scenario"]]
+            or row.get("scenario_text", "") != scenario_text
+        ):
+            raise InputError(
+                f"{out} holds trials of {row['scenario']} run with other code, "
+                "priors, baselines, demo or scenario settings (their fingerprint "
+                "or --scenario-text differs); give another --out"
+            )
     jobs = []
     for name, poses in pose_lists.items():
         for method in methods:

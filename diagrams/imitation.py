@@ -797,7 +797,10 @@ def _chamfer(camera, frame: Frame, demo: Demo, pose_now, rng) -> float:
 
 
 def ScoreEpisode(
-    scenario: Scenario, prepared: PreparedImitation, run: EpisodeRun
+    scenario: Scenario,
+    prepared: PreparedImitation,
+    run: EpisodeRun,
+    on_violation: str = "stop",
 ) -> dict:
     """Success, final IoU and Chamfer distance against the demo's end state
     (simulation ground truth), rule breaks of the executed actions on the
@@ -886,9 +889,12 @@ def ScoreEpisode(
             np.random.default_rng(0),
         )
         summary.update(
+            # Under "stop" the referee's verdict is final, also where it came
+            # after the controller had ended (a contact while the last move
+            # finished, or on the way clear).
             success=bool(report.success)
             and run.error is None
-            and summary["termination"] not in ("rule_break", "collision"),
+            and not (on_violation == "stop" and summary.get("halt")),
             success_details=report.details,
             final_iou=round(final_iou, 3),
             final_chamfer=round(chamfer, 6),
@@ -965,7 +971,7 @@ def Imitate(
         "station": "hardware (LCM drivers)" if hardware else "simulation",
         "object_pose": list(scenario.object.pose),
         "on_violation": None if hardware else on_violation,
-        **ScoreEpisode(scenario, prepared, run),
+        **ScoreEpisode(scenario, prepared, run, on_violation),
     }
     # Writing files comes last and cannot lose the run's summary.
     WriteOutputs(

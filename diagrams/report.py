@@ -31,8 +31,12 @@ from fabric_imitation.learning.errors import InputError
 Z95 = statistics.NormalDist().inv_cdf(0.975)
 
 # Fingerprints that must agree within a table, and within a row as well.
-TABLE_FINGERPRINTS = ("code", "priors", "baselines", "referee")
-ROW_FINGERPRINTS = ("scenario", "demo")
+TABLE_FINGERPRINTS = ("code", "priors", "baselines")
+# Per task (every method's row of one scenario in a table): the referee's
+# thresholds belong to the task, and paired rows must share scene and demo.
+ROW_FINGERPRINTS = ("referee", "scenario", "demo")
+# Pose seeds from here on are test seeds (docs/benchmark.md, seed ledger).
+FIRST_TEST_SEED = 1000
 REQUIRED = (
     "scenario",
     "method",
@@ -225,7 +229,23 @@ def LoadTrials(runs: list[Path]) -> list[Trial]:
         if count == 0:
             raise InputError(f"{path}: no trials")
     _check_fingerprints(trials)
+    _check_seed_blocks(trials)
     return _once(trials)
+
+
+def _check_seed_blocks(trials: list[Trial]) -> None:
+    """A table is all development seeds or all test seeds, never both."""
+    blocks: dict[tuple, dict[bool, Trial]] = {}
+    for t in trials:
+        blocks.setdefault(t.table, {}).setdefault(t["pose_seed"] >= FIRST_TEST_SEED, t)
+    for table, kinds in blocks.items():
+        if len(kinds) == 2:
+            raise InputError(
+                "table {}/{} mixes development pose seeds ({}) and test pose seeds "
+                "({}); report them apart".format(
+                    *table, kinds[False].where, kinds[True].where
+                )
+            )
 
 
 def _check_fingerprints(trials: list[Trial]) -> None:
@@ -234,9 +254,9 @@ def _check_fingerprints(trials: list[Trial]) -> None:
         for group, names, what in (
             (t.table, TABLE_FINGERPRINTS, "table {}/{}".format(*t.table)),
             (
-                (*t.table, *t.cell),
+                (*t.table, t.cell[0]),
                 ROW_FINGERPRINTS,
-                "row {}/{} of table {}/{}".format(*t.cell, *t.table),
+                "task {} of table {}/{}".format(t.cell[0], *t.table),
             ),
         ):
             other = first.setdefault(group, t)
@@ -379,7 +399,7 @@ def _table_markdown(table: dict, figure: str) -> list[str]:
         "",
         "| task | method | success | Wilson 95 % [%] | paper Table I [%] | IoU "
         "(mean ± SD) | Chamfer (mean) | true rule breaks (trials) | collisions "
-        "(trials) | terminations | scenario / demo fingerprint |",
+        "(trials) | terminations | referee / scenario / demo fingerprint |",
         "|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for r in table["rows"]:
@@ -405,7 +425,8 @@ def _table_markdown(table: dict, figure: str) -> list[str]:
             f"({100 * r['success_rate']:.1f} %) | [{100 * low:.1f}, {100 * high:.1f}] "
             f"| {_num(_paper(r['method'], r['scenario']), '.1f')} | {iou} "
             f"| {_num(r['chamfer_mean'], '.3g')} | {breaks} | {hits} | {ends} "
-            f"| `{r['fingerprint']['scenario']}` / `{r['fingerprint']['demo']}` |"
+            f"| `{r['fingerprint']['referee']}` / `{r['fingerprint']['scenario']}` "
+            f"/ `{r['fingerprint']['demo']}` |"
         )
     lines += [
         "",

@@ -543,6 +543,25 @@ ANCHOR_CAPSULES = PandaHandCapsules()
 ANCHOR_HAND_YAW = RotationMatrix.MakeZRotation(np.pi / 4)
 
 
+# The Panda's tool centre point holds the corner with the fingertips this far
+# [m] below it (panda_collision.urdf); the anchors hold it at the tips.
+PANDA_TIPS_BELOW_TCP = 0.015
+
+
+def GraspCapsules(scenario: Scenario) -> tuple[Capsule, ...]:
+    """The hand capsules of the scenario's grippers around the grasped point
+    (world-aligned; the Panda's turned as the anchors')."""
+    if scenario.grippers.kind != "panda":
+        return AnchorHandCapsules()
+    down = np.array([0.0, 0.0, PANDA_TIPS_BELOW_TCP])
+    return tuple(
+        GripperCapsule(
+            tuple(np.array(c.p_a) - down), tuple(np.array(c.p_b) - down), c.radius
+        )
+        for c in AnchorHandCapsules()
+    )
+
+
 def AnchorHandCapsules() -> tuple[Capsule, ...]:
     """The anchors' hand capsules in the anchor's (world-aligned) frame."""
     return tuple(
@@ -568,7 +587,7 @@ def CheckGrippersClear(scenario: Scenario) -> None:
     X_OW = PoseOnTable(scenario.object.pose).inverse()
     for side, p_W in GraspCorners(scenario).items():
         depth = CapsulesPenetration(
-            AnchorHandCapsules(),
+            GraspCapsules(scenario),
             X_OW @ RigidTransform(p_W),
             np.array(scenario.object.size, float),
         )

@@ -31,11 +31,12 @@ class Capsule:
     p_b: tuple[float, float, float]
     radius: float
 
-    def samples(self, spacing_fraction: float = 0.25) -> np.ndarray:
+    def samples(self, spacing_fraction: float = 0.1) -> np.ndarray:
         """(n, 3) points along the axis, at most `spacing_fraction` x radius
         apart: spheres of the capsule's radius at these points cover it to
-        within radius x (1 - sqrt(1 - (spacing_fraction / 2)^2)) (0.8 % at
-        0.25)."""
+        within radius x (1 - sqrt(1 - (spacing_fraction / 2)^2)) (0.13 % at
+        0.1: 0.06 mm on the hand's 5 cm, under the 0.15 mm a hand resting on
+        the object sinks in)."""
         a, b = np.array(self.p_a), np.array(self.p_b)
         n = int(np.ceil(np.linalg.norm(b - a) / (spacing_fraction * self.radius)))
         return a + np.linspace(0.0, 1.0, max(n, 1) + 1)[:, None] * (b - a)

@@ -189,7 +189,7 @@ def test_the_sheet_is_two_counter_clockwise_triangles_per_cell(checkerboard):
     # Each cell's diagonal: the edge its two triangles share.
     cells = len(tris) // 2
     diagonals = []
-    for first, second in zip(tris[:cells], tris[cells:]):
+    for first, second in zip(tris[:cells], tris[cells:], strict=True):
         shared = sorted(set(first) & set(second))
         (i0, j0), (i1, j1) = xy[shared[0]], xy[shared[1]]
         diagonals.append((i1 - i0) * (j1 - j0) > 0)  # along +x +y

@@ -125,14 +125,12 @@ def test_report_builds_tables_figures_and_pairs(tmp_path):
         assert figure.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
         assert f"]({figure.name})" in text
     assert summary["figures"] == [str(f) for f in figures]
-    assert (
-        "Fingerprints: code `c0de`, priors `p1`, baselines `b1`, referee `r1`." in text
-    )
+    assert "Fingerprints: code `c0de`, priors `p1`, baselines `b1`." in text
     assert "Pose seeds: 0. Sampling seeds: 0." in text
     # ours 4 / 5: Wilson 37.6 to 96.4 %; the paper's 81.9 % beside it.
     assert (
         "| box | ours | 4 / 5 (80.0 %) | [37.6, 96.4] | 81.9 | 0.82 ± 0.16 | 0.001 "
-        "| 2 (1) | 0 (0) | classifier 4, step cap 1 | `s1` / `d1` |"
+        "| 2 (1) | 0 (0) | classifier 4, step cap 1 | `r1` / `s1` / `d1` |"
     ) in text
     # zero's crashed trial is a failure with no episode figures.
     assert "| box | zero | 1 / 5 (20.0 %) |" in text
@@ -170,7 +168,7 @@ def test_refuses_a_code_fingerprint_that_differs_within_a_table(tmp_path):
     _refused(tmp_path, runs, r"fingerprint 'code' differs: 'c0de' .* vs 'beef'")
 
 
-def test_refuses_a_demo_fingerprint_that_differs_within_a_row(tmp_path):
+def test_refuses_a_demo_fingerprint_that_differs_within_a_task(tmp_path):
     other = _trial("ours", 1, True)
     other["fingerprint"]["demo"] = "d2"
     a = _write(tmp_path / "a.jsonl", [_trial("ours", 0, True)])
@@ -178,11 +176,19 @@ def test_refuses_a_demo_fingerprint_that_differs_within_a_row(tmp_path):
     _refused(
         tmp_path,
         [a, b],
-        r"row box/ours of table transformation/stop: fingerprint 'demo' differs",
+        r"task box of table transformation/stop: fingerprint 'demo' differs",
     )
-    # Another row may have another demo.
-    other["method"] = "zero"
+    # Another task may have another demo (and its own referee).
+    other["scenario"] = "hang"
+    other["fingerprint"]["referee"] = "r2"
     Report(runs=[a, _write(b, [other])], out=tmp_path / "ok.md")
+
+
+def test_refuses_a_table_of_development_and_test_seeds(tmp_path):
+    test = _trial("ours", 1, True)
+    test["pose_seed"] = 1000
+    runs = _write(tmp_path / "a.jsonl", [_trial("ours", 0, True), test])
+    _refused(tmp_path, [runs], r"mixes development pose seeds")
 
 
 def test_refuses_bad_lines_and_empty_inputs(tmp_path):
