@@ -117,8 +117,16 @@ def LoadScenarioFromArgs(args):
 
     text = args.scenario_text
     if getattr(args, "object_pose", None) is not None:
-        x, y, yaw = args.object_pose
-        text += f"\nobject: {{pose: [{x}, {y}, {yaw}]}}\n"
+        import yaml
+
+        # Merged into the mapping (the text may be a one-line flow mapping,
+        # which a further line would not extend).
+        overrides = yaml.safe_load(text) if text and text.strip() else {}
+        overrides["object"] = {
+            **overrides.get("object", {}),
+            "pose": [float(v) for v in args.object_pose],
+        }
+        text = yaml.safe_dump(overrides)
     scenario = LoadScenario(
         scenario_name=args.scenario, filename=args.scenario_file, scenario_text=text
     )

@@ -108,3 +108,21 @@ def test_a_value_of_the_wrong_type_names_its_field(text, field, capsys):
     assert main(["imitate", "--scenario-text", text]) == 2
     err = capsys.readouterr().err
     assert f"--scenario-text: {field}: " in err and err.count("\n") == 1, err
+
+
+def test_an_object_pose_merges_into_a_one_line_scenario_text():
+    from argparse import Namespace
+
+    from fabric_imitation.diagrams.cli import LoadScenarioFromArgs
+
+    scenario = LoadScenarioFromArgs(
+        Namespace(
+            scenario="box",
+            scenario_file=None,
+            scenario_text="{cloth: {pose: [0.01, 0.22, 5.0]}, mpc: {time_budget: .inf}}",
+            object_pose=[0.05, -0.1, 30.0],
+        )
+    )
+    assert scenario.object.pose == [0.05, -0.1, 30.0]
+    assert scenario.cloth.pose == [0.01, 0.22, 5.0]
+    assert scenario.mpc.time_budget == float("inf")
