@@ -161,15 +161,21 @@ def test_a_checkpoint_without_the_goal_recognizer_is_refused(trained, tmp_path):
     b.save(tmp_path)
     tensors = torch.load(tmp_path / "baselines.pt", weights_only=True)
     tensors = {k: v for k, v in tensors.items() if not k.startswith("zero_recognizer.")}
-    torch.save(tensors, tmp_path / "baselines.pt")
-    description = json.loads((tmp_path / "baselines.json").read_text())
-    description["tensors"]["sha256"] = hashlib.sha256(
-        (tmp_path / "baselines.pt").read_bytes()
-    ).hexdigest()
-    (tmp_path / "baselines.json").write_text(json.dumps(description))
+    _rewrite_tensors(tmp_path, tensors)
     with pytest.raises(InputError, match="lack the zero_recognizer network") as e:
         load_baselines(tmp_path)
     assert "\n" not in str(e.value) and "train-baselines" in str(e.value)
+
+
+def _rewrite_tensors(directory, tensors) -> None:
+    """Saves `tensors` as the baselines' tensors file with a matching sha256
+    in baselines.json (so only what the tensors hold is under test)."""
+    torch.save(tensors, directory / "baselines.pt")
+    description = json.loads((directory / "baselines.json").read_text())
+    description["tensors"]["sha256"] = hashlib.sha256(
+        (directory / "baselines.pt").read_bytes()
+    ).hexdigest()
+    (directory / "baselines.json").write_text(json.dumps(description))
 
 
 class _RunsCode:
@@ -186,12 +192,7 @@ def test_a_baselines_file_that_would_run_code_is_refused(trained, tmp_path):
     witness = tmp_path / "code-ran"
     tensors = torch.load(tmp_path / "baselines.pt", weights_only=True)
     tensors["payload"] = _RunsCode(witness)
-    torch.save(tensors, tmp_path / "baselines.pt")
-    description = json.loads((tmp_path / "baselines.json").read_text())
-    description["tensors"]["sha256"] = hashlib.sha256(
-        (tmp_path / "baselines.pt").read_bytes()
-    ).hexdigest()
-    (tmp_path / "baselines.json").write_text(json.dumps(description))
+    _rewrite_tensors(tmp_path, tensors)
     with pytest.raises(InputError, match="need pickle"):
         load_baselines(tmp_path)
     assert not witness.exists()
