@@ -514,8 +514,9 @@ def _plot(table: dict, path: Path) -> None:
         for s in scenarios:
             r = cells.get((s, method))
             rate.append(r["success_rate"] if r else np.nan)
-            low.append(r["success_rate"] - r["wilson95"][0] if r else 0)
-            high.append(r["wilson95"][1] - r["success_rate"] if r else 0)
+            # Clamped: at 0 % or 100 % the bound equals the rate up to rounding.
+            low.append(max(r["success_rate"] - r["wilson95"][0], 0.0) if r else 0)
+            high.append(max(r["wilson95"][1] - r["success_rate"], 0.0) if r else 0)
             value = _paper(method, s)
             paper.append(np.nan if value is None else value / 100)
         ax.bar(x, rate, width, yerr=[low, high], capsize=2, label=method)
