@@ -1,5 +1,5 @@
 """`fabric-imitate collect`: random safe bimanual motions in the contact-free
-prior scene, recorded as transitions (DESIGN.md section 5).
+prior scene, recorded as transitions (paper Sec. IV-B).
 
 Episodes are the unit of work: episode e draws from RNG(seed, e) only, so the
 data are the same for any worker count or executor, and a resumed run

@@ -1,5 +1,5 @@
 """Scripted demonstrations, defined in the task object's frame O so that they
-work at any object pose (DESIGN.md section 8).
+work at any object pose.
 
 A plan is a list of gripper waypoints; `PlanActions` cuts it into relative
 moves [a_L, a_R] of at most `safety.max_step` per axis, one per control step.

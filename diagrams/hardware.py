@@ -30,6 +30,7 @@ from fabric_imitation.diagrams.panda import (
 from fabric_imitation.diagrams.station import (
     CLOTH_LABEL,
     NUM_KEYPOINTS,
+    ClothResolution,
     ClothStation,
     GraspCorners,
     PoseOnTable,
@@ -287,8 +288,9 @@ def MakeHardwareClothStation(
         ConstantValueSource(AbstractValue.Make(PoseOnTable(scenario.object.pose))),
     )
     builder.ExportOutput(object_pose.get_output_port(), StationPorts.OBJECT_POSE)
-    n = int(np.prod(scenario.cloth.resolution))
-    # Simulation-only ports, unknown (NaN) on hardware.
+    # Simulation-only ports, unknown (NaN) on hardware, sized as the
+    # simulated station's for the same scenario (its engine's slab mesh).
+    n = int(np.prod(ClothResolution(scenario)))
     unknowns = [
         (StationPorts.CLOTH_POSITIONS, 3 * n),
         (StationPorts.CLOTH_KEYPOINTS, 3 * NUM_KEYPOINTS),

@@ -835,14 +835,7 @@ def ScoreEpisode(
         "termination": "diverged" if run.error else TERMINATION_NAMES[termination],
         "rule_breaks_estimated": estimated,
         "executed_violations": estimated["any"],
-        "mpc_step_ms": {
-            "p50": round(float(np.percentile(solve_ms, 50)), 1)
-            if len(solve_ms)
-            else None,
-            "p95": round(float(np.percentile(solve_ms, 95)), 1)
-            if len(solve_ms)
-            else None,
-        },
+        "mpc_step_ms": {"p50": percentile(50), "p95": percentile(95)},
         "error": run.error,
     }
     if tr.true_before is not None:

@@ -29,7 +29,7 @@ from fabric_imitation.systems.visualization import (
     RgbdRecorder,
     VideoRecorder,
 )
-from pydrake.geometry import Meshcat
+from pydrake.geometry import Meshcat, Rgba
 from pydrake.systems.analysis import Simulator
 from pydrake.systems.framework import DiagramBuilder
 
@@ -84,6 +84,7 @@ def AddClothRecorder(
             num_vertices=len(mesh.vertices),
             triangles=TopTriangles(mesh.top_layer),
             period=1 / 16,
+            rgba=Rgba(*station.scenario.cloth.color, 1.0),
         ),
     )
     builder.Connect(

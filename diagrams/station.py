@@ -419,7 +419,6 @@ def _add_vbd_cloth(builder, scene_graph, scenario, mesh, X_WC, X_WO):
     from fabric_imitation.systems.cloth_simulator import (
         BoxCollider,
         ClothSimulator,
-        VbdSettings,
     )
 
     cloth, vbd = scenario.cloth, scenario.cloth.vbd
@@ -440,11 +439,6 @@ def _add_vbd_cloth(builder, scene_graph, scenario, mesh, X_WC, X_WO):
         )
         for name, (X_WB, size, mu) in _static_boxes(scenario, X_WO).items()
     ]
-    fields = {f.name for f in dc.fields(VbdSettings)}
-    settings = VbdSettings(
-        friction=cloth.friction,
-        **{k: v for k, v in dc.asdict(vbd).items() if k in fields},
-    )
     system = ClothSimulator(
         sheet_W=(
             X_WC.GetAsMatrix34() @ np.c_[mesh.vertices[top], np.ones(len(top))].T
@@ -460,7 +454,8 @@ def _add_vbd_cloth(builder, scene_graph, scenario, mesh, X_WC, X_WO):
         grasped=GraspedVertices(scenario, mesh.vertices[top]),
         grippers_W0=GraspCorners(scenario),
         colliders=colliders,
-        settings=settings,
+        settings=vbd,
+        friction=cloth.friction,
         time_step=scenario.plant_config.time_step,
         geometry_id=geometry_id,
     )

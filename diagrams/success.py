@@ -1,5 +1,5 @@
 """Task success, judged on ground-truth cloth vertices after release and
-settling (DESIGN.md section 8). Plain numpy functions."""
+settling. Plain numpy functions."""
 
 import dataclasses as dc
 

@@ -1,4 +1,4 @@
-"""Demonstration learning (paper Section IV-C; DESIGN.md section 6): the
+"""Demonstration learning (paper Section IV-C): the
 state-alignment reward R_E = J - w_P D_P - w_N D_N and the termination
 classifier, built from one demo's states S_E^1..T in the object frame.
 

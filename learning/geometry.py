@@ -7,7 +7,7 @@ Canonical frame of a state: origin at the midpoint of the grasped corners
 s1, s2 on the table plane (z = 0), x axis along s2 - s1 projected on the table.
 Dynamics are learned in this frame, which makes them independent of where the
 cloth lies on the table and how it is turned about the vertical, hence of the
-object frame a task is expressed in (DESIGN.md section 4). Height is kept:
+object frame a task is expressed in. Height is kept:
 gravity and the table break that symmetry.
 """
 

@@ -1,5 +1,5 @@
-"""State-alignment-driven sampling MPC (paper's Algorithm 1; DESIGN.md
-section 7), batched in torch. Works in the task object's frame.
+"""State-alignment-driven sampling MPC (paper's Algorithm 1), batched
+in torch. Works in the task object's frame.
 
 Each control step, from the current state S_t:
 1. action prior: roll h steps through f_I (or, with `prior="grasp"`, the

@@ -1,4 +1,4 @@
-"""The safe action set A_V(S) (DESIGN.md section 4), one batched function
+"""The safe action set A_V(S) (paper Sec. IV-B), one batched function
 shared by data collection and the MPC cost.
 
 Shapes: states S (..., M, 3), actions A (..., 6) = [a_L, a_R], broadcast

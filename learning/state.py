@@ -1,4 +1,4 @@
-"""The cloth state S: M ordered boundary keypoints in 3-D (DESIGN.md section 4).
+"""The cloth state S: M ordered boundary keypoints in 3-D (paper Sec. IV-B).
 
 Order: counter-clockwise seen from above, starting at the left grasped corner
 s1. With the cloth's grasped edge at its local -y side and "left" at local -x

@@ -1,5 +1,5 @@
 """`fabric-imitate train`: f_R, f_D, f_I from a prior dataset, with held-out
-metrics, training curves (PNG) and a checkpoint (DESIGN.md section 5)."""
+metrics, training curves (PNG) and a checkpoint (paper Sec. IV-B)."""
 
 import dataclasses as dc
 import json

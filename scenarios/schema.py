@@ -16,7 +16,6 @@ from fabric_imitation.learning.demo_learning import RewardConfig
 from fabric_imitation.learning.errors import InputError
 from fabric_imitation.learning.mpc import MpcConfig
 from fabric_imitation.learning.safety import SafetyConfig
-from fabric_imitation.systems.cloth_simulator import BENDING_MODELS, CONTACT_ELEMENTS
 from pydrake.multibody.plant import MultibodyPlantConfig
 from pydrake.systems.sensors import CameraConfig
 
@@ -39,6 +38,20 @@ class TableConfig:
 
 
 CLOTH_ENGINES = ("vbd", "fem")
+
+# The newton collision pipeline's edge and face contact pairs that each
+# choice of a collider's contact elements (`VbdConfig.table_contact`) leaves
+# the collider out of.
+CONTACT_ELEMENTS = {
+    "surface": (),
+    "edges": ("soft_face_rigid_pairs",),
+    "particles": ("soft_edge_rigid_pairs", "soft_face_rigid_pairs"),
+}
+BENDING_MODELS = ("quadratic", "dihedral")
+# Bending damping of each model where the scenario leaves it out: newton's
+# dihedral default of this project, and none for the quadratic bending,
+# whose explicit damping would need a much smaller substep at that value.
+DEFAULT_BENDING_DAMPING = {"dihedral": 1.0e-3, "quadratic": 0.0}
 
 
 @dc.dataclass

@@ -13,7 +13,7 @@ Coupling is one-way: the grippers (read from the plant) move the grasped
 corner patches kinematically and the table and the task object push the
 cloth, but the cloth exerts no force on anything in the plant.
 
-Bending (`VbdSettings.bending_model`): "quadratic", the isometric bending
+Bending (`VbdConfig.bending_model`): "quadratic", the isometric bending
 energy of Bergou et al. 2006 ("A quadratic bending model for inextensible
 surfaces"), computed here as an external force once per substep (its
 Hessian is constant; stable for the stiffness a cloth has, checked when the
@@ -41,6 +41,11 @@ import os
 
 import numpy as np
 from fabric_imitation.learning.errors import InputError
+from fabric_imitation.scenarios.schema import (
+    CONTACT_ELEMENTS,
+    DEFAULT_BENDING_DAMPING,
+    VbdConfig,
+)
 from pydrake.common.value import AbstractValue
 from pydrake.geometry import GeometryConfigurationVector, GeometryId
 from pydrake.math import RigidTransform
@@ -59,7 +64,7 @@ class ClothDivergedError(RuntimeError):
 class BoxCollider:
     """A static box the cloth collides with: pose of its centre, full size
     [m], Coulomb friction, and which of the cloth's elements touch it where
-    `VbdSettings.surface_contact` is on (CONTACT_ELEMENTS: "surface"
+    `VbdConfig.surface_contact` is on (CONTACT_ELEMENTS: "surface"
     particles, edges and faces; "edges" particles and edges; "particles")."""
 
     X_WB: RigidTransform
@@ -75,54 +80,16 @@ class BoxCollider:
             )
 
 
-# The newton collision pipeline's edge and face contact pairs that each
-# BoxCollider.contact leaves the box out of.
-CONTACT_ELEMENTS = {
-    "surface": (),
-    "edges": ("soft_face_rigid_pairs",),
-    "particles": ("soft_edge_rigid_pairs", "soft_face_rigid_pairs"),
-}
+# Held or free, no vertex of a sane cloth strays this far [m] from the world
+# origin.
+RUNAWAY_DISTANCE = 5.0
 
 
-BENDING_MODELS = ("quadratic", "dihedral")
-# Bending damping of each model where the scenario leaves it out: newton's
-# dihedral default of this project, and none for the quadratic bending,
-# whose explicit damping would need a much smaller substep at that value.
-DEFAULT_BENDING_DAMPING = {"dihedral": 1.0e-3, "quadratic": 0.0}
-
-
-@dc.dataclass(frozen=True)
-class VbdSettings:
-    """Solver and material settings in SI units (scenarios/schema.py's
-    `VbdConfig` documents each value)."""
-
-    substeps: int
-    iterations: int
-    stretch_stiffness: float  # N/m
-    area_stiffness: float  # N/m
-    stretch_damping: float  # s
-    bending_stiffness: float  # N m (per radian squared, per metre of edge)
-    bending_damping: float | None  # N m s (per radian, per metre of edge)
-    areal_density: float  # kg/m^2
-    contact_stiffness: float  # N/m
-    contact_damping: float  # N s/m
-    contact_distance: float  # m
-    surface_contact: bool
-    friction: float
-    bending_model: str = "quadratic"
-    grasp_turns: bool = True  # held patches turn about z with the grasped edge
-    runaway_distance: float = 5.0  # m from the world origin
-
-    def __post_init__(self):
-        if self.bending_model not in BENDING_MODELS:
-            raise ValueError(
-                f"unknown bending model {self.bending_model!r} (one of: "
-                f"{', '.join(BENDING_MODELS)})"
-            )
-        if self.bending_damping is None:
-            object.__setattr__(
-                self, "bending_damping", DEFAULT_BENDING_DAMPING[self.bending_model]
-            )
+def ResolvedBendingDamping(settings: VbdConfig) -> float:
+    """The settings' bending damping, or its bending model's default."""
+    if settings.bending_damping is not None:
+        return settings.bending_damping
+    return DEFAULT_BENDING_DAMPING[settings.bending_model]
 
 
 def _init_warp():
@@ -388,7 +355,8 @@ class ClothSimulator(LeafSystem):
         grasped: side -> particle indices held by that gripper.
         grippers_W0: side -> the gripper's world position at rest.
         colliders: static boxes (table, task object).
-        settings: VbdSettings.
+        settings: the scenario's `cloth.vbd`.
+        friction: the cloth's Coulomb friction with every collider.
         time_step: period of the discrete update [s].
         geometry_id: the slab geometry registered in SceneGraph (or None).
     """
@@ -405,7 +373,8 @@ class ClothSimulator(LeafSystem):
         grasped: dict,
         grippers_W0: dict,
         colliders: list[BoxCollider],
-        settings: VbdSettings,
+        settings: VbdConfig,
+        friction: float,
         time_step: float,
         geometry_id: GeometryId | None = None,
     ):
@@ -430,6 +399,7 @@ class ClothSimulator(LeafSystem):
         if settings.bending_model == "quadratic":
             self._bending = self._quadratic_bending(settings, time_step)
         self._settings = settings
+        self._friction = friction
         self._colliders = list(colliders)
         self._geometry_id = geometry_id
         self._engine = None  # built on first update (kernels compile then)
@@ -464,7 +434,7 @@ class ClothSimulator(LeafSystem):
             {self.discrete_state_ticket(self._cloth_state)},
         )
 
-    def _quadratic_bending(self, settings: VbdSettings, time_step: float):
+    def _quadratic_bending(self, settings: VbdConfig, time_step: float):
         """Stencils, weights and per-stencil stiffness and damping [N/m, N s/m]
         of the quadratic bending; a bending too stiff for the explicit step
         is an InputError."""
@@ -480,13 +450,14 @@ class ClothSimulator(LeafSystem):
             lengths,
             masses,
             stiffness=settings.bending_stiffness,
-            damping=settings.bending_damping,
+            damping=ResolvedBendingDamping(settings),
             substep=h,
         )
         if margin > 1.0:
             raise InputError(
                 f"cloth.vbd bending_stiffness {settings.bending_stiffness:g} / "
-                f"bending_damping {settings.bending_damping:g} are too stiff for "
+                f"bending_damping {ResolvedBendingDamping(settings):g} are too "
+                "stiff for "
                 f"the explicit quadratic bending at {1e3 * h:g} ms substeps "
                 f"({margin:.2f} of the stable limit, 1 allowed): use more "
                 "cloth.vbd.substeps or bending_model: dihedral"
@@ -495,7 +466,7 @@ class ClothSimulator(LeafSystem):
             stencils,
             weights,
             settings.bending_stiffness * lengths,
-            settings.bending_damping * lengths,
+            ResolvedBendingDamping(settings) * lengths,
         )
 
     # ----- outputs -------------------------------------------------------
@@ -552,7 +523,7 @@ class ClothSimulator(LeafSystem):
         )
         q_new, qd_new = engine.step(x, g_start, g_end, held=not released)
         finite = bool(np.isfinite(q_new).all())
-        if not finite or np.abs(q_new).max() > self._settings.runaway_distance:
+        if not finite or np.abs(q_new).max() > RUNAWAY_DISTANCE:
             raise ClothDivergedError(
                 f"vbd cloth diverged at t = {context.get_time():.3f} s "
                 "(non-finite or runaway vertices)"
@@ -574,6 +545,7 @@ class ClothSimulator(LeafSystem):
             grippers_W0=self._grippers_W0,
             colliders=self._colliders,
             settings=self._settings,
+            friction=self._friction,
             time_step=self._dt,
             bending=self._bending,
         )
@@ -608,7 +580,8 @@ class _VbdEngine:
         grasped,
         grippers_W0,
         colliders,
-        settings: VbdSettings,
+        settings: VbdConfig,
+        friction: float,
         time_step,
         bending=None,
     ):
@@ -653,14 +626,14 @@ class _VbdEngine:
             # newton's dihedral bending, or none where this class adds the
             # quadratic bending (`bending`) as an external force.
             edge_ke=settings.bending_stiffness if bending is None else 0.0,
-            edge_kd=settings.bending_damping if bending is None else 0.0,
+            edge_kd=ResolvedBendingDamping(settings) if bending is None else 0.0,
             particle_radius=settings.contact_distance,
         )
         builder.color(include_bending=True)
         model = builder.finalize(device="cpu", requires_grad=False)
         model.soft_contact_ke = settings.contact_stiffness
         model.soft_contact_kd = settings.contact_damping
-        model.soft_contact_mu = settings.friction
+        model.soft_contact_mu = friction
         self._model = model
         self._solver = SolverVBD(model, iterations=settings.iterations)
         self._pipeline = newton.CollisionPipeline(

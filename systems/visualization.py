@@ -13,7 +13,6 @@ from pydrake.systems.framework import EventStatus, LeafSystem
 from pydrake.systems.sensors import ImageDepth32F, ImageRgba8U
 
 CLOTH_FRAMES_PATH = "/cloth_frames"
-CLOTH_RGBA = Rgba(0.85, 0.15, 0.15, 1.0)
 
 
 def FrameName(index: int) -> str:
@@ -27,6 +26,7 @@ class ClothFrameRecorder(LeafSystem):
     The frame index is derived from the time, so the system has no state.
 
     Input ports: ``positions`` (3N cloth vertex positions, world).
+    `rgba` is the cloth's colour (the scenario's `cloth.color`).
     """
 
     def __init__(
@@ -36,7 +36,7 @@ class ClothFrameRecorder(LeafSystem):
         num_vertices: int,
         triangles: np.ndarray,
         period: float,
-        rgba: Rgba = CLOTH_RGBA,
+        rgba: Rgba,
     ):
         super().__init__()
         self._meshcat = meshcat
@@ -45,6 +45,9 @@ class ClothFrameRecorder(LeafSystem):
         self._rgba = rgba
         self._positions = self.DeclareVectorInputPort("positions", 3 * num_vertices)
         self.DeclarePeriodicPublishEvent(period, 0.0, self._publish)
+
+    def rgba(self) -> Rgba:
+        return self._rgba
 
     def _publish(self, context) -> EventStatus:
         t = context.get_time()

@@ -119,7 +119,9 @@ def test_an_object_pose_merges_into_a_one_line_scenario_text():
         Namespace(
             scenario="box",
             scenario_file=None,
-            scenario_text="{cloth: {pose: [0.01, 0.22, 5.0]}, mpc: {time_budget: .inf}}",
+            scenario_text=(
+                "{cloth: {pose: [0.01, 0.22, 5.0]}, mpc: {time_budget: .inf}}"
+            ),
             object_pose=[0.05, -0.1, 30.0],
         )
     )

@@ -369,12 +369,9 @@ def test_a_held_particle_carried_into_a_collider_lies_on_its_surface():
     cm box standing there (the held patch reaches past fingers that keep
     clear of the object): the held particle lies on the box's near face
     instead, and the right one, outside any box, follows its gripper."""
-    import dataclasses as dc
-
     from fabric_imitation.scenarios.schema import VbdConfig
     from fabric_imitation.systems.cloth_simulator import (
         BoxCollider,
-        VbdSettings,
         _VbdEngine,
     )
     from pydrake.math import RigidTransform
@@ -382,10 +379,6 @@ def test_a_held_particle_carried_into_a_collider_lies_on_its_surface():
     tris, rest = _sheet(4, 4, spacing=0.04)
     sheet = rest + [0.0, 0.0, 0.05]
     left, right = 0, 12  # (0, 0) and (0.12, 0), the edge y = 0
-    fields = {f.name for f in dc.fields(VbdSettings)}
-    settings = VbdSettings(
-        friction=0.3, **{k: v for k, v in dc.asdict(VbdConfig()).items() if k in fields}
-    )
     box = BoxCollider(RigidTransform([0.0, -0.1, 0.05]), (0.1, 0.1, 0.1), 0.3)
     engine = _VbdEngine(
         sheet_W=sheet,
@@ -393,7 +386,8 @@ def test_a_held_particle_carried_into_a_collider_lies_on_its_surface():
         grasped={"left": [left], "right": [right]},
         grippers_W0={"left": sheet[left], "right": sheet[right]},
         colliders=[box],
-        settings=settings,
+        settings=VbdConfig(),
+        friction=0.3,
         time_step=0.01,
     )
     start = np.stack([sheet[left], sheet[right]])

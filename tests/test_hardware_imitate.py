@@ -10,7 +10,10 @@ import signal
 import numpy as np
 import pytest
 from drake import lcmt_panda_command
-from fabric_imitation.diagrams.hardware import MakeSimulatedLab
+from fabric_imitation.diagrams.hardware import (
+    MakeHardwareClothStation,
+    MakeSimulatedLab,
+)
 from fabric_imitation.diagrams.imitation import (
     DefaultDemoDir,
     MakeImitationDiagram,
@@ -18,7 +21,7 @@ from fabric_imitation.diagrams.imitation import (
     RunEpisode,
     ScoreEpisode,
 )
-from fabric_imitation.diagrams.station import StationPorts
+from fabric_imitation.diagrams.station import MakeClothStation, StationPorts
 from fabric_imitation.diagrams.success import TaskSuccess
 from fabric_imitation.scenarios.loader import LoadScenario
 from pydrake.common.value import AbstractValue
@@ -134,3 +137,19 @@ def test_ctrl_c_tells_both_arms_to_hold_and_says_so():
         # publisher (every 10 ms)
         assert hold.utime % 10000 == 3000, hold.utime
         assert np.all(np.isfinite(hold.joint_position))
+
+
+@pytest.mark.parametrize("engine", ["vbd", "fem"])
+def test_hardware_cloth_ports_have_the_simulated_station_sizes(engine):
+    # FEM and VBD grids of different sizes: each engine's slab must decide.
+    text = (
+        f"cloth: {{engine: {engine}, resolution: [5, 5, 2], "
+        "vbd: {resolution: [6, 6]}}\n"
+    )
+    scenario = LoadScenario(scenario_name="box_panda", scenario_text=text)
+    simulated = MakeClothStation(scenario).diagram
+    hardware = MakeHardwareClothStation(scenario, lcm=DrakeLcm("memq://")).diagram
+    for name in (StationPorts.CLOTH_POSITIONS, StationPorts.CLOTH_KEYPOINTS):
+        assert (
+            hardware.GetOutputPort(name).size() == simulated.GetOutputPort(name).size()
+        ), name

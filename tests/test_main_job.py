@@ -8,9 +8,15 @@ import sys
 import numpy as np
 import pytest
 from fabric_imitation.diagrams.imitation import DEFAULT_DEMOS, DEFAULT_PRIORS, Imitate
+from fabric_imitation.diagrams.station import ClothResolution
 from fabric_imitation.learning.errors import InputError
 from fabric_imitation.learning.mpc import MpcConfig
 from fabric_imitation.scenarios.loader import LoadScenario
+from fabric_imitation.scenarios.schema import ClothConfig
+
+from tests.conftest import SmallCloth
+
+DEFAULT_ENGINE = ClothConfig().engine
 
 TINY_MPC = MpcConfig(
     num_samples=40, horizon=2, elites=5, max_iterations=1, step_cap_factor=0.0
@@ -20,8 +26,10 @@ TINY_MPC = MpcConfig(
 def test_imitate_smoke_run_with_tiny_settings():
     scenario = LoadScenario(
         scenario_name="box",
-        scenario_text="cloth: {resolution: [6, 6, 2]}\nmotion: {settle_seconds: 0.2}",
+        scenario_text=SmallCloth(DEFAULT_ENGINE) + "motion: {settle_seconds: 0.2}",
     )
+    # Tiny on the engine the run uses, not only on the other one.
+    assert np.prod(ClothResolution(scenario)) <= 6 * 6 * 2
     summary = Imitate(
         scenario=scenario, scenario_name="box", mpc_config=TINY_MPC, progress=False
     )

@@ -1,4 +1,4 @@
-"""Each rule of the safe action set on hand-built states (DESIGN.md section 4)."""
+"""Each rule of the safe action set (paper Sec. IV-B) on hand-built states."""
 
 import numpy as np
 import pytest

@@ -168,3 +168,20 @@ def test_fabric_mask_matches_the_projected_cloth(engine):
     truth = truth > 0
     iou = (mask & truth).sum() / (mask | truth).sum()
     assert iou >= 0.8, iou
+
+
+def test_meshcat_recording_draws_the_cloth_in_its_own_colour():
+    from fabric_imitation.diagrams.simulation import AddClothRecorder
+    from pydrake.geometry import Meshcat
+    from pydrake.systems.framework import DiagramBuilder
+
+    color = [0.15, 0.62, 0.30]
+    scenario = LoadScenario(
+        scenario_name="box",
+        scenario_text=f"cloth: {{vbd: {{resolution: [6, 6]}}, color: {color}}}",
+    )
+    station = MakeClothStation(scenario)
+    builder = DiagramBuilder()
+    builder.AddSystem(station.diagram)
+    recorder = AddClothRecorder(builder, station, Meshcat())
+    assert recorder.rgba().rgba.tolist() == pytest.approx([*color, 1.0])
