@@ -1,4 +1,5 @@
-"""Diagram builders, runners and the command line."""
+"""Diagram builders: the cloth station (simulated, Panda, hardware) and the
+imitation diagram around it."""
 
 import importlib.util
 

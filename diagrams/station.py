@@ -27,17 +27,17 @@ import os
 from pathlib import Path
 
 import numpy as np
-from fabric_imitation.diagrams.cloth_mesh import ClothMesh, MakeClothMesh, TopTriangles
 from fabric_imitation.learning.errors import InputError
-from fabric_imitation.scenarios.schema import Scenario, yaw_rad
+from fabric_imitation.learning.state import NUM_KEYPOINTS, SIDES
+from fabric_imitation.scenarios.poses import ClothPose, GraspCorners, PoseOnTable
+from fabric_imitation.scenarios.schema import Scenario
+from fabric_imitation.systems.cloth_mesh import ClothMesh, MakeClothMesh, TopTriangles
 from fabric_imitation.systems.gripper_contact import (
-    Capsule as GripperCapsule,
-)
-from fabric_imitation.systems.gripper_contact import (
-    CapsulesPenetration,
+    ANCHOR_CAPSULES,
+    ANCHOR_HAND_YAW,
+    AnchorHandCapsules,
     GripperBody,
     GripperObjectContact,
-    PandaHandCapsules,
     PandaLinkCapsules,
 )
 from fabric_imitation.systems.station_parts import (
@@ -89,11 +89,9 @@ from pydrake.systems.primitives import (
 )
 from pydrake.systems.sensors import CameraInfo, RgbdSensor
 
-NUM_KEYPOINTS = 8
 CLOTH_LABEL = 7
 TABLE_LABEL = 1
 OBJECT_LABEL = 2
-SIDES = ("left", "right")
 CLIP_RADIUS = 0.01
 
 
@@ -160,24 +158,6 @@ _MATERIALS = {
     "neohookean": MaterialModel.kNeoHookean,
     "linear": MaterialModel.kLinear,
 }
-
-
-def PoseOnTable(pose: list[float], z: float = 0.0) -> RigidTransform:
-    """X_W* of an [x, y, yaw_deg] pose on the table top, lifted by z."""
-    return RigidTransform(
-        RotationMatrix.MakeZRotation(yaw_rad(pose)), [pose[0], pose[1], z]
-    )
-
-
-def GraspCorners(scenario: Scenario) -> dict[str, np.ndarray]:
-    """World positions of the grasped corners (top face) at the start."""
-    cloth = scenario.cloth
-    X_WC = ClothPose(scenario)
-    hx, hy, hz = cloth.size[0] / 2, cloth.size[1] / 2, cloth.thickness / 2
-    return {
-        "left": X_WC @ np.array([-hx, -hy, hz]),
-        "right": X_WC @ np.array([hx, -hy, hz]),
-    }
 
 
 # Point-contact stiffness [N/m] of the rigid geometry the grippers meet (the
@@ -357,11 +337,6 @@ def _perception(color: Rgba, label: int) -> PerceptionProperties:
     return perception
 
 
-def ClothPose(scenario: Scenario) -> RigidTransform:
-    """X_WC of the cloth frame C (the slab's centre) at rest on the table."""
-    return PoseOnTable(scenario.cloth.pose, scenario.cloth.thickness / 2)
-
-
 def _cloth_instance(
     mesh: ClothMesh, X_WC: RigidTransform, color=(0.85, 0.15, 0.15)
 ) -> GeometryInstance:
@@ -529,69 +504,6 @@ def _add_anchor(plant: MultibodyPlant, scenario: Scenario, side: str, p_W0: np.n
         )
     plant.gravity_field().set_enabled(instance, False)
     return instance, anchor
-
-
-# The anchors' hands: the grasp frame of PandaHandCapsules turned so the
-# fingers close along the world's diagonal, as the station's Panda hands do
-# (panda.HandOrientation at the default base yaw of 90 degrees).
-ANCHOR_CAPSULES = PandaHandCapsules()
-ANCHOR_HAND_YAW = RotationMatrix.MakeZRotation(np.pi / 4)
-
-
-# The Panda's tool centre point holds the corner with the fingertips this far
-# [m] below it (panda_collision.urdf); the anchors hold it at the tips.
-PANDA_TIPS_BELOW_TCP = 0.015
-
-
-def GraspCapsules(scenario: Scenario) -> tuple[Capsule, ...]:
-    """The hand capsules of the scenario's grippers around the grasped point
-    (world-aligned; the Panda's turned as the anchors')."""
-    if scenario.grippers.kind != "panda":
-        return AnchorHandCapsules()
-    down = np.array([0.0, 0.0, PANDA_TIPS_BELOW_TCP])
-    return tuple(
-        GripperCapsule(
-            tuple(np.array(c.p_a) - down), tuple(np.array(c.p_b) - down), c.radius
-        )
-        for c in AnchorHandCapsules()
-    )
-
-
-def AnchorHandCapsules() -> tuple[Capsule, ...]:
-    """The anchors' hand capsules in the anchor's (world-aligned) frame."""
-    return tuple(
-        GripperCapsule(
-            tuple(ANCHOR_HAND_YAW @ np.array(c.p_a)),
-            tuple(ANCHOR_HAND_YAW @ np.array(c.p_b)),
-            c.radius,
-        )
-        for c in ANCHOR_CAPSULES
-    )
-
-
-# A trial's start must leave the grippers' hands this far [m] from the task
-# object (0: not inside it).
-START_CLEARANCE = 0.0
-
-
-def CheckGrippersClear(scenario: Scenario) -> None:
-    """Raises InputError where a gripper's hand, holding its corner at the
-    start, would lie within START_CLEARANCE of the task object."""
-    if scenario.object.kind == "none":
-        return
-    X_OW = PoseOnTable(scenario.object.pose).inverse()
-    for side, p_W in GraspCorners(scenario).items():
-        depth = CapsulesPenetration(
-            GraspCapsules(scenario),
-            X_OW @ RigidTransform(p_W),
-            np.array(scenario.object.size, float),
-        )
-        if depth >= -START_CLEARANCE:
-            raise InputError(
-                f"the {side} gripper's hand starts {depth * 100:.1f} cm inside "
-                f"the object (it must start at least {START_CLEARANCE * 100:g} "
-                "cm clear of it)"
-            )
 
 
 def _gripper_bodies(plant: MultibodyPlant, scenario: Scenario) -> list[GripperBody]:

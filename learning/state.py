@@ -17,6 +17,11 @@ from typing import NamedTuple
 
 import numpy as np
 
+# The two grippers, left first (the robot looks along +y).
+SIDES = ("left", "right")
+# M, the keypoints of the cloth state every model and scene uses.
+NUM_KEYPOINTS = 8
+
 
 def corner_indices(m: int) -> dict[str, int]:
     """Positions of s1 (left grasp), s2 (right grasp), s3 (left far), s4 (right

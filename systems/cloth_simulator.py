@@ -41,6 +41,7 @@ import os
 
 import numpy as np
 from fabric_imitation.learning.errors import InputError
+from fabric_imitation.learning.state import SIDES
 from fabric_imitation.scenarios.schema import (
     CONTACT_ELEMENTS,
     DEFAULT_BENDING_DAMPING,
@@ -51,7 +52,6 @@ from pydrake.geometry import GeometryConfigurationVector, GeometryId
 from pydrake.math import RigidTransform
 from pydrake.systems.framework import BasicVector, EventStatus, LeafSystem
 
-SIDES = ("left", "right")
 log = logging.getLogger(__name__)
 _WARP_READY = False
 

@@ -17,8 +17,9 @@ arms too, whose collisions the station filters out.
 import dataclasses as dc
 
 import numpy as np
+from fabric_imitation.scenarios.schema import Scenario
 from pydrake.common.value import AbstractValue
-from pydrake.math import RigidTransform
+from pydrake.math import RigidTransform, RotationMatrix
 from pydrake.systems.framework import EventStatus, LeafSystem
 
 
@@ -174,3 +175,41 @@ class GripperObjectContact(LeafSystem):
             [steps, first, deepest]
         )
         return EventStatus.Succeeded()
+
+
+# The anchors' hands: the grasp frame of PandaHandCapsules turned so the
+# fingers close along the world's diagonal, as the station's Panda hands do
+# (panda.HandOrientation at the default base yaw of 90 degrees).
+ANCHOR_CAPSULES = PandaHandCapsules()
+
+
+ANCHOR_HAND_YAW = RotationMatrix.MakeZRotation(np.pi / 4)
+
+
+# The Panda's tool centre point holds the corner with the fingertips this far
+# [m] below it (panda_collision.urdf); the anchors hold it at the tips.
+PANDA_TIPS_BELOW_TCP = 0.015
+
+
+def GraspCapsules(scenario: Scenario) -> tuple[Capsule, ...]:
+    """The hand capsules of the scenario's grippers around the grasped point
+    (world-aligned; the Panda's turned as the anchors')."""
+    if scenario.grippers.kind != "panda":
+        return AnchorHandCapsules()
+    down = np.array([0.0, 0.0, PANDA_TIPS_BELOW_TCP])
+    return tuple(
+        Capsule(tuple(np.array(c.p_a) - down), tuple(np.array(c.p_b) - down), c.radius)
+        for c in AnchorHandCapsules()
+    )
+
+
+def AnchorHandCapsules() -> tuple[Capsule, ...]:
+    """The anchors' hand capsules in the anchor's (world-aligned) frame."""
+    return tuple(
+        Capsule(
+            tuple(ANCHOR_HAND_YAW @ np.array(c.p_a)),
+            tuple(ANCHOR_HAND_YAW @ np.array(c.p_b)),
+            c.radius,
+        )
+        for c in ANCHOR_CAPSULES
+    )

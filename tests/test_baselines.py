@@ -453,10 +453,9 @@ def test_each_shipped_baseline_acts_in_a_short_episode(controller):
         DefaultDemoDir,
         MakeImitationDiagram,
         PrepareImitation,
-        RunEpisode,
-        ScoreEpisode,
     )
     from fabric_imitation.scenarios.loader import LoadScenario
+    from fabric_imitation.tools.episode import RunEpisode, ScoreEpisode
 
     scenario = LoadScenario(
         scenario_name="box",

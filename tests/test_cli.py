@@ -6,7 +6,7 @@ import sys
 import time
 
 import pytest
-from fabric_imitation.diagrams.cli import main
+from fabric_imitation.tools.cli import main
 
 
 @pytest.mark.parametrize(
@@ -55,7 +55,7 @@ def test_argument_errors_come_before_heavy_imports():
         [
             sys.executable,
             "-m",
-            "fabric_imitation.diagrams.cli",
+            "fabric_imitation.tools.cli",
             "evaluate",
             "--trials",
             "0",
@@ -83,7 +83,7 @@ def test_old_flag_spellings_work_with_a_note(capsys):
 def test_native_chatter_is_filtered_unless_verbose(verbose):
     code = (
         "import os, time\n"
-        "from fabric_imitation.diagrams.cli import _stdout_for_summary_only\n"
+        "from fabric_imitation.tools.cli import _stdout_for_summary_only\n"
         f"out = _stdout_for_summary_only(verbose={verbose})\n"
         "os.write(1, b'Polishing not needed - no active set\\nsolver says hi\\n')\n"
         "time.sleep(0.3)\n"
@@ -113,7 +113,7 @@ def test_a_value_of_the_wrong_type_names_its_field(text, field, capsys):
 def test_an_object_pose_merges_into_a_one_line_scenario_text():
     from argparse import Namespace
 
-    from fabric_imitation.diagrams.cli import LoadScenarioFromArgs
+    from fabric_imitation.tools.cli import LoadScenarioFromArgs
 
     scenario = LoadScenarioFromArgs(
         Namespace(

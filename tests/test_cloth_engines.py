@@ -6,16 +6,16 @@ in test_station.py."""
 import cv2
 import numpy as np
 import pytest
-from fabric_imitation.diagrams.bench import DrapePlot, DrapeReach, SideFlapReach
-from fabric_imitation.diagrams.cloth_mesh import TopTriangles
-from fabric_imitation.diagrams.demos import ScriptedDemoPlan
-from fabric_imitation.diagrams.simulation import OpenLoopRun, SimulationDivergedError
 from fabric_imitation.learning.errors import InputError
 from fabric_imitation.scenarios.loader import LoadScenario
+from fabric_imitation.systems.cloth_mesh import TopTriangles
 from fabric_imitation.systems.cloth_simulator import (
     BendingStencils,
     QuadraticBendingWeights,
 )
+from fabric_imitation.tasks.demos import ScriptedDemoPlan
+from fabric_imitation.tools.bench import DrapePlot, DrapeReach, SideFlapReach
+from fabric_imitation.tools.simulation import OpenLoopRun, SimulationDivergedError
 
 from tests.conftest import SMALL_CLOTH
 from tests.test_station import Rig

@@ -11,7 +11,6 @@ import sys
 import cv2
 import numpy as np
 import pytest
-from fabric_imitation.diagrams.demo_record import ImportDemoForScenario
 from fabric_imitation.diagrams.station import (
     MARKER_MARGIN_CELLS,
     CameraModelFromConfig,
@@ -26,6 +25,7 @@ from fabric_imitation.learning.demo_import import (
 from fabric_imitation.learning.demo_io import LoadDemo
 from fabric_imitation.learning.errors import InputError
 from fabric_imitation.scenarios.loader import LoadScenario
+from fabric_imitation.tools.demo_record import ImportDemoForScenario
 
 SCALE = 4  # the recording is 4x the control camera's 160 px, as export-raw
 POSE = (0.03, -0.12, 25.0)  # the object's true pose [m, m, deg]
@@ -328,7 +328,7 @@ def _cli(*args):
         [
             sys.executable,
             "-m",
-            "fabric_imitation.diagrams.cli",
+            "fabric_imitation.tools.cli",
             "demo",
             "import",
             *map(str, args),
@@ -472,7 +472,7 @@ def test_a_marker_on_the_table_gives_the_camera_pose(tmp_path):
 
 
 def test_a_full_raw_directory_is_refused_before_the_run(tmp_path):
-    from fabric_imitation.diagrams.demo_record import RecordDemo
+    from fabric_imitation.tools.demo_record import RecordDemo
 
     (tmp_path / "raw").mkdir()
     (tmp_path / "raw" / "old.png").write_bytes(b"")

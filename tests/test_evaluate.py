@@ -2,7 +2,7 @@
 trials' JSON lines."""
 
 import numpy as np
-from fabric_imitation.diagrams.evaluate import PROTOCOLS, ResultsMarkdown, _aggregate
+from fabric_imitation.tools.evaluate import PROTOCOLS, ResultsMarkdown, _aggregate
 
 
 def _row(trial, success, breaks, steps, iou):
@@ -81,7 +81,7 @@ def test_an_evaluation_killed_mid_way_resumes_without_repeating_or_losing(tmp_pa
     command = [
         sys.executable,
         "-m",
-        "fabric_imitation.diagrams.cli",
+        "fabric_imitation.tools.cli",
         "evaluate",
         "--scenarios",
         "box",
@@ -115,8 +115,8 @@ def test_an_evaluation_killed_mid_way_resumes_without_repeating_or_losing(tmp_pa
 def test_a_trial_that_raises_is_one_failed_row(monkeypatch):
     """A crash inside a trial is recorded as that trial's failure (the sweep
     goes on), and the cell counts it without its episode figures."""
-    import fabric_imitation.diagrams.evaluate as evaluate
     import fabric_imitation.diagrams.imitation as imitation
+    import fabric_imitation.tools.evaluate as evaluate
 
     def crash(**kwargs):
         raise ValueError("the controller exploded")
@@ -143,7 +143,7 @@ def test_returns_and_curves_follow_the_trials(tmp_path):
     """Fig. 8's curves: the return drops by one warning per rule-breaking
     action and gains the success reward at the end; shorter episodes hold
     their last value in the mean; the plot is written."""
-    from fabric_imitation.diagrams.evaluate import (
+    from fabric_imitation.tools.evaluate import (
         SUCCESS_REWARD,
         WARNING_REWARD,
         EpisodeReturns,
@@ -176,7 +176,7 @@ def test_ray_and_local_evaluations_write_the_same_trials(tmp_path):
     import pytest
 
     ray = pytest.importorskip("ray")
-    from fabric_imitation.diagrams.evaluate import Evaluate
+    from fabric_imitation.tools.evaluate import Evaluate
 
     common = dict(
         scenario_names=["box"],
@@ -215,7 +215,7 @@ def test_ray_and_local_evaluations_write_the_same_trials(tmp_path):
 
 
 def test_occlusion_hides_the_asked_fraction_of_the_fabric():
-    from fabric_imitation.diagrams.bench import Occlude
+    from fabric_imitation.tools.bench import Occlude
 
     rng = np.random.default_rng(0)
     mask = np.zeros((160, 160), np.uint8)
@@ -234,8 +234,8 @@ def test_a_sampling_seed_is_another_run_of_the_same_poses(tmp_path, monkeypatch)
     another's."""
     import json
 
-    import fabric_imitation.diagrams.evaluate as evaluate
     import fabric_imitation.diagrams.imitation as imitation
+    import fabric_imitation.tools.evaluate as evaluate
 
     seeds = []
 

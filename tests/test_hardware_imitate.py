@@ -18,12 +18,11 @@ from fabric_imitation.diagrams.imitation import (
     DefaultDemoDir,
     MakeImitationDiagram,
     PrepareImitation,
-    RunEpisode,
-    ScoreEpisode,
 )
 from fabric_imitation.diagrams.station import MakeClothStation, StationPorts
-from fabric_imitation.diagrams.success import TaskSuccess
 from fabric_imitation.scenarios.loader import LoadScenario
+from fabric_imitation.tasks.success import TaskSuccess
+from fabric_imitation.tools.episode import RunEpisode, ScoreEpisode
 from pydrake.common.value import AbstractValue
 from pydrake.lcm import DrakeLcm
 from pydrake.systems.framework import DiagramBuilder, LeafSystem

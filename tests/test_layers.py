@@ -4,9 +4,14 @@ text (no imports run).
 Layers, lowest first; a module may import its own layer and those below:
 
     learning   torch and numpy only: state, safety rules, models, MPC
-    scenarios  the typed Scenario and the named scenes (Drake's YAML types)
-    systems    Drake LeafSystems
-    diagrams   builders, runners, evaluation, CLI
+    scenarios  the typed Scenario, the named scenes, where a scene puts things
+    systems    Drake LeafSystems and the geometry they share (cloth mesh,
+               gripper capsules)
+    tasks      what each task is: success, the benchmark referee, the
+               scripted demonstrations
+    diagrams   builders: the station (simulated, Panda, hardware) and the
+               imitation diagram
+    tools      runners, evaluation, report, benchmarks, the command line
 """
 
 import ast
@@ -16,12 +21,12 @@ from pathlib import Path
 import pytest
 
 ROOT = Path(__file__).resolve().parent.parent
-LAYERS = ("learning", "scenarios", "systems", "diagrams")
+LAYERS = ("learning", "scenarios", "systems", "tasks", "diagrams", "tools")
 PACKAGE = "fabric_imitation"
 
 
 def _sources(folder: str) -> list[Path]:
-    return sorted(p for p in (ROOT / folder).rglob("*.py") if ".venv" not in p.parts)
+    return sorted((ROOT / folder).rglob("*.py"))
 
 
 def _imports(path: Path) -> list[tuple[int, str]]:

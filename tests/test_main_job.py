@@ -7,12 +7,13 @@ import sys
 
 import numpy as np
 import pytest
-from fabric_imitation.diagrams.imitation import DEFAULT_DEMOS, DEFAULT_PRIORS, Imitate
+from fabric_imitation.diagrams.imitation import DEFAULT_DEMOS, DEFAULT_PRIORS
 from fabric_imitation.diagrams.station import ClothResolution
 from fabric_imitation.learning.errors import InputError
 from fabric_imitation.learning.mpc import MpcConfig
 from fabric_imitation.scenarios.loader import LoadScenario
 from fabric_imitation.scenarios.schema import ClothConfig
+from fabric_imitation.tools.episode import Imitate
 
 from tests.conftest import SmallCloth
 
@@ -67,7 +68,7 @@ def test_shipped_priors_and_demos_exist():
 
 def _cli(*args):
     return subprocess.run(
-        [sys.executable, "-m", "fabric_imitation.diagrams.cli", "imitate", *args],
+        [sys.executable, "-m", "fabric_imitation.tools.cli", "imitate", *args],
         capture_output=True,
         text=True,
         timeout=300,
@@ -135,7 +136,7 @@ def test_demo_of_another_task():
 
 
 def test_hardware_flags_name_the_problem(capsys):
-    from fabric_imitation.diagrams.cli import main
+    from fabric_imitation.tools.cli import main
 
     assert main(["imitate", "--scenario", "box", "--hardware"]) == 2
     err = capsys.readouterr().err

@@ -4,13 +4,10 @@ in-process LCM loop, joint limits under random targets, bad input."""
 import numpy as np
 import pytest
 from fabric_imitation.diagrams.hardware import MakeSimulatedLab
-from fabric_imitation.diagrams.station import (
-    GraspCorners,
-    InitializeStation,
-    MakeClothStation,
-)
+from fabric_imitation.diagrams.station import InitializeStation, MakeClothStation
 from fabric_imitation.learning.errors import InputError
 from fabric_imitation.scenarios.loader import LoadScenario
+from fabric_imitation.scenarios.poses import GraspCorners
 from pydrake.lcm import DrakeLcm
 from pydrake.systems.analysis import Simulator
 from pydrake.systems.framework import DiagramBuilder
@@ -218,7 +215,7 @@ def test_unknown_robot_package_or_model_is_a_one_line_error():
 @pytest.mark.slow
 @pytest.mark.parametrize("name", ["box_panda", "hang_panda"])
 def test_demo_record_with_pandas_succeeds(tmp_path, name):
-    from fabric_imitation.diagrams.demo_record import RecordDemo
+    from fabric_imitation.tools.demo_record import RecordDemo
 
     s = LoadScenario(scenario_name=name)
     summary = RecordDemo(

@@ -12,12 +12,12 @@ import h5py
 import numpy as np
 import pytest
 import torch
-from fabric_imitation.diagrams.collect import Collect
 from fabric_imitation.learning.dataset import LoadDataset, ShardEpisodes
 from fabric_imitation.learning.errors import InputError
 from fabric_imitation.learning.priors import load_priors
 from fabric_imitation.learning.train import TrainConfig, _split, train_priors
 from fabric_imitation.scenarios.loader import LoadScenario
+from fabric_imitation.tools.collect import Collect
 
 TINY = (
     "cloth: {resolution: [5, 5, 2]}\n"
@@ -86,7 +86,7 @@ def test_collection_killed_with_sigkill_resumes_to_exactly_n(tiny_dataset, tmp_p
     cmd = [
         sys.executable,
         "-m",
-        "fabric_imitation.diagrams.cli",
+        "fabric_imitation.tools.cli",
         "collect",
         "--scenario",
         "prior",

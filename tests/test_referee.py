@@ -4,12 +4,6 @@ demos keeping the referee's rules, and the trials' cloth starts."""
 import numpy as np
 import pytest
 from conftest import SMALL_CLOTH
-from fabric_imitation.diagrams.referee import (
-    REFEREES,
-    FirstBreak,
-    JudgeTransitions,
-    TaskReferee,
-)
 from fabric_imitation.learning.safety import RULES
 from fabric_imitation.learning.state import corner_indices
 from fabric_imitation.scenarios.loader import LoadScenario
@@ -19,6 +13,12 @@ from fabric_imitation.systems.imitation import (
     StepController,
 )
 from fabric_imitation.systems.referee import HALT_RULE_BREAK, Referee
+from fabric_imitation.tasks.referee import (
+    REFEREES,
+    FirstBreak,
+    JudgeTransitions,
+    TaskReferee,
+)
 from pydrake.common.value import AbstractValue
 from pydrake.math import RigidTransform
 from pydrake.systems.analysis import Simulator
@@ -127,11 +127,11 @@ def test_an_anchor_driven_into_the_box_stops_on_its_face_and_reports_contact():
     of the face, and the station reports the contact."""
     from fabric_imitation.diagrams.station import (
         AdvanceStationTo,
-        GraspCorners,
         InitializeStation,
         MakeClothStation,
         StationPorts,
     )
+    from fabric_imitation.scenarios.poses import GraspCorners
     from fabric_imitation.systems.targets import ActionPlayer, GripperTargetIntegrator
 
     scenario = LoadScenario(scenario_name="box", scenario_text=SMALL_CLOTH)
@@ -189,7 +189,7 @@ def test_an_anchor_driven_into_the_box_stops_on_its_face_and_reports_contact():
 @pytest.mark.parametrize("task", ["box", "hang"])
 def test_the_scripted_demos_keep_the_referees_rules_without_collisions(task):
     """At the nominal pose and a moved and turned one, on the shipped cloth."""
-    from fabric_imitation.diagrams.evaluate import (
+    from fabric_imitation.tools.evaluate import (
         ClothStarts,
         ProtocolPoses,
         ScriptedTrial,
@@ -206,7 +206,7 @@ def test_the_scripted_demos_keep_the_referees_rules_without_collisions(task):
 
 
 def test_the_cloth_start_is_drawn_from_the_seed_within_its_band():
-    from fabric_imitation.diagrams.evaluate import (
+    from fabric_imitation.tools.evaluate import (
         CLOTH_START_SHIFT,
         CLOTH_START_TURN_DEG,
         ClothStarts,
@@ -230,7 +230,7 @@ def test_the_cloth_start_is_drawn_from_the_seed_within_its_band():
 
 def test_an_unknown_on_violation_rule_is_one_line_and_exit_2(capsys):
     from fabric_imitation.diagrams import cli, referee
-    from fabric_imitation.diagrams.cli import main
+    from fabric_imitation.tools.cli import main
 
     assert cli.ON_VIOLATION == referee.ON_VIOLATION
 

@@ -6,14 +6,14 @@ import subprocess
 import sys
 
 import pytest
-from fabric_imitation.diagrams.cli import main
-from fabric_imitation.diagrams.report import (
+from fabric_imitation.learning.errors import InputError
+from fabric_imitation.tools.cli import main
+from fabric_imitation.tools.report import (
     McNemarExact,
     NewcombePaired,
     Report,
     Wilson,
 )
-from fabric_imitation.learning.errors import InputError
 
 FINGERPRINT = {
     "code": "c0de",
@@ -229,7 +229,7 @@ def test_the_command_line_refuses_with_status_2(tmp_path, capsys):
 def test_the_report_module_needs_neither_drake_nor_torch():
     code = (
         "import sys\n"
-        "import fabric_imitation.diagrams.report\n"
+        "import fabric_imitation.tools.report\n"
         "print(sorted(m for m in ('pydrake', 'torch') if m in sys.modules))\n"
     )
     result = subprocess.run(

@@ -8,12 +8,7 @@ import types
 import numpy as np
 import pytest
 import torch
-from fabric_imitation.diagrams.imitation import (
-    EpisodeRun,
-    EpisodeTransitions,
-    ObjectSafetyContext,
-    ScoreEpisode,
-)
+from fabric_imitation.diagrams.imitation import ObjectSafetyContext
 from fabric_imitation.learning.mpc import MpcResult
 from fabric_imitation.learning.safety import SafetyContext, rule_violations
 from fabric_imitation.learning.state import PlanarPose, object_to_world
@@ -25,6 +20,7 @@ from fabric_imitation.systems.imitation import (
 )
 from fabric_imitation.systems.station_parts import ReleaseLatch
 from fabric_imitation.systems.targets import GripperTargetIntegrator
+from fabric_imitation.tools.episode import EpisodeRun, EpisodeTransitions, ScoreEpisode
 from pydrake.math import RigidTransform, RotationMatrix
 from pydrake.systems.analysis import Simulator
 from pydrake.systems.framework import DiagramBuilder

@@ -102,7 +102,7 @@ def test_cli_reports_bad_input_in_one_line_with_nonzero_exit(tmp_path):
         [
             sys.executable,
             "-m",
-            "fabric_imitation.diagrams.cli",
+            "fabric_imitation.tools.cli",
             "demo",
             "record",
             "--scenario",
@@ -121,7 +121,7 @@ def test_cli_reports_bad_input_in_one_line_with_nonzero_exit(tmp_path):
 
 
 def test_evaluate_scenario_text_applies_to_every_trial_pose():
-    from fabric_imitation.diagrams.evaluate import TrialPoses, TrialScenario
+    from fabric_imitation.tools.evaluate import TrialPoses, TrialScenario
 
     text = "cloth: {engine: fem}\nobject: {friction: 0.8}"
     poses = TrialPoses("box", trials=3, seed=1, scenario_text=text)
@@ -137,7 +137,7 @@ def test_evaluate_scenario_text_applies_to_every_trial_pose():
 def test_protocols_draw_poses_in_their_bands():
     import math
 
-    from fabric_imitation.diagrams.evaluate import PROTOCOLS, ProtocolPoses
+    from fabric_imitation.tools.evaluate import PROTOCOLS, ProtocolPoses
 
     base = LoadScenario(scenario_name="hang").object.pose
     lists = {}

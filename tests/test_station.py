@@ -1,15 +1,15 @@
 import cv2
 import numpy as np
 import pytest
-from fabric_imitation.diagrams.cloth_mesh import TopTriangles
 from fabric_imitation.diagrams.station import (
     AdvanceStationTo,
-    GraspCorners,
     MakeClothStation,
     StationPorts,
 )
 from fabric_imitation.learning.state import corner_indices
 from fabric_imitation.scenarios.loader import LoadScenario
+from fabric_imitation.scenarios.poses import GraspCorners
+from fabric_imitation.systems.cloth_mesh import TopTriangles
 from pydrake.math import RigidTransform
 from pydrake.systems.analysis import Simulator
 
@@ -171,7 +171,7 @@ def test_fabric_mask_matches_the_projected_cloth(engine):
 
 
 def test_meshcat_recording_draws_the_cloth_in_its_own_colour():
-    from fabric_imitation.diagrams.simulation import AddClothRecorder
+    from fabric_imitation.diagrams.recorders import AddClothRecorder
     from pydrake.geometry import Meshcat
     from pydrake.systems.framework import DiagramBuilder
 

@@ -11,13 +11,13 @@ import sys
 import msgpack
 import numpy as np
 import pytest
-from fabric_imitation.diagrams.demo_record import RecordDemo
-from fabric_imitation.diagrams.demos import ScriptedDemoPlan
 from fabric_imitation.diagrams.recording import MakeRecordingMeshcat, SaveRecording
-from fabric_imitation.diagrams.simulation import OpenLoopRun
 from fabric_imitation.learning.demo_io import LoadDemo
 from fabric_imitation.learning.errors import InputError
 from fabric_imitation.scenarios.loader import LoadScenario
+from fabric_imitation.tasks.demos import ScriptedDemoPlan
+from fabric_imitation.tools.demo_record import RecordDemo
+from fabric_imitation.tools.simulation import OpenLoopRun
 
 from tests.conftest import SMALL_CLOTH
 
@@ -157,7 +157,7 @@ def test_demo_record_rejects_an_object_pose_outside_the_workspace(tmp_path):
         [
             sys.executable,
             "-m",
-            "fabric_imitation.diagrams.cli",
+            "fabric_imitation.tools.cli",
             "demo",
             "record",
             "--scenario",

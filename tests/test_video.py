@@ -4,9 +4,9 @@ from the control camera and the people's camera."""
 import av
 import numpy as np
 from conftest import SmallCloth
-from fabric_imitation.diagrams.runs import Simulate
 from fabric_imitation.learning.demo_io import WriteVideo
 from fabric_imitation.scenarios.loader import LoadScenario
+from fabric_imitation.tools.runs import Simulate
 
 
 def _probe(path):

@@ -3,12 +3,12 @@
 from pathlib import Path
 
 import numpy as np
-from fabric_imitation.diagrams.demo_record import RunSummary
-from fabric_imitation.diagrams.demos import ScriptedDemoPlan
 from fabric_imitation.diagrams.recording import MakeRecordingMeshcat
-from fabric_imitation.diagrams.simulation import OpenLoopRun, WriteOutputs
 from fabric_imitation.learning.errors import InputError
 from fabric_imitation.scenarios.schema import Scenario
+from fabric_imitation.tasks.demos import ScriptedDemoPlan
+from fabric_imitation.tools.demo_record import RunSummary
+from fabric_imitation.tools.simulation import OpenLoopRun, WriteOutputs
 
 
 def Simulate(

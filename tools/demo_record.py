@@ -4,9 +4,7 @@ save it as an observation-only demo."""
 from pathlib import Path
 
 import numpy as np
-from fabric_imitation.diagrams.demos import ScriptedDemoPlan
 from fabric_imitation.diagrams.recording import MakeRecordingMeshcat
-from fabric_imitation.diagrams.simulation import OpenLoopRun, RunResult, WriteOutputs
 from fabric_imitation.diagrams.station import CameraModelFromConfig, ClothStation
 from fabric_imitation.learning.demo_io import (
     CameraModel,
@@ -16,6 +14,8 @@ from fabric_imitation.learning.demo_io import (
 from fabric_imitation.learning.errors import InputError
 from fabric_imitation.scenarios.loader import DumpScenario
 from fabric_imitation.scenarios.schema import Scenario
+from fabric_imitation.tasks.demos import ScriptedDemoPlan
+from fabric_imitation.tools.simulation import OpenLoopRun, RunResult, WriteOutputs
 
 
 def StationCameraModel(station: ClothStation) -> CameraModel:

@@ -4,9 +4,9 @@ settling. Plain numpy functions."""
 import dataclasses as dc
 
 import numpy as np
-from fabric_imitation.diagrams.cloth_mesh import TopTriangles
 from fabric_imitation.learning.state import world_to_object
 from fabric_imitation.scenarios.schema import Scenario, yaw_rad
+from fabric_imitation.systems.cloth_mesh import TopTriangles
 
 
 @dc.dataclass

@@ -31,7 +31,13 @@ from fabric_imitation.learning.safety import (
     rule_violations,
 )
 from fabric_imitation.learning.state import PlanarPose
+from fabric_imitation.scenarios.poses import GraspCorners, PoseOnTable
 from fabric_imitation.scenarios.schema import Scenario
+from fabric_imitation.systems.gripper_contact import (
+    CapsulesPenetration,
+    GraspCapsules,
+)
+from pydrake.math import RigidTransform
 
 ON_VIOLATION = ("stop", "count")
 
@@ -173,3 +179,28 @@ def FirstBreak(judged: dict[str, np.ndarray]) -> tuple[int, str] | None:
         return None
     i = int(hits[0])
     return i, next(r for r in RULES if judged[r][i])
+
+
+# A trial's start must leave the grippers' hands this far [m] from the task
+# object (0: not inside it).
+START_CLEARANCE = 0.0
+
+
+def CheckGrippersClear(scenario: Scenario) -> None:
+    """Raises InputError where a gripper's hand, holding its corner at the
+    start, would lie within START_CLEARANCE of the task object."""
+    if scenario.object.kind == "none":
+        return
+    X_OW = PoseOnTable(scenario.object.pose).inverse()
+    for side, p_W in GraspCorners(scenario).items():
+        depth = CapsulesPenetration(
+            GraspCapsules(scenario),
+            X_OW @ RigidTransform(p_W),
+            np.array(scenario.object.size, float),
+        )
+        if depth >= -START_CLEARANCE:
+            raise InputError(
+                f"the {side} gripper's hand starts {depth * 100:.1f} cm inside "
+                f"the object (it must start at least {START_CLEARANCE * 100:g} "
+                "cm clear of it)"
+            )

@@ -17,10 +17,7 @@ from pathlib import Path
 import numpy as np
 import torch
 from fabric_imitation.diagrams.station import (
-    NUM_KEYPOINTS,
-    SIDES,
     CameraModelFromConfig,
-    GraspCorners,
     InitializeStation,
     MakeClothStation,
     StationPorts,
@@ -34,7 +31,9 @@ from fabric_imitation.learning.dataset import (
 )
 from fabric_imitation.learning.errors import InputError
 from fabric_imitation.learning.safety import SafetyContext, valid_actions
+from fabric_imitation.learning.state import NUM_KEYPOINTS, SIDES
 from fabric_imitation.scenarios.loader import DumpScenario, LoadScenario
+from fabric_imitation.scenarios.poses import GraspCorners
 from fabric_imitation.scenarios.schema import Scenario
 from fabric_imitation.systems.targets import GripperTargetIntegrator
 from pydrake.systems.analysis import Simulator

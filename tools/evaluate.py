@@ -205,11 +205,8 @@ def _set_prepared(prepared: dict) -> None:
 def _prepare(job: dict):
     """PrepareImitation for the scenario of `job` (at its base pose)."""
     import torch
-    from fabric_imitation.diagrams.imitation import (
-        DefaultDemoDir,
-        PrepareImitation,
-        TorchThreads,
-    )
+    from fabric_imitation.diagrams.imitation import DefaultDemoDir, PrepareImitation
+    from fabric_imitation.tools.episode import TorchThreads
 
     torch.set_num_threads(TorchThreads())
     scenario = TrialScenario(job["scenario"], job["scenario_text"], None)
@@ -232,7 +229,7 @@ def _run_trial(job: dict) -> dict:
     if job["method"] == "scripted":
         summary = ScriptedTrial(scenario, on_violation=job.get("on_violation", "stop"))
     else:
-        from fabric_imitation.diagrams.imitation import Imitate
+        from fabric_imitation.tools.episode import Imitate
 
         controller, changes = METHODS[job["method"]]
         try:
@@ -269,7 +266,7 @@ def _run_trial(job: dict) -> dict:
 
 
 def _CheckGrippersClear(scenario) -> None:
-    from fabric_imitation.diagrams.station import CheckGrippersClear
+    from fabric_imitation.tasks.referee import CheckGrippersClear
 
     CheckGrippersClear(scenario)
 
@@ -279,11 +276,11 @@ def ScriptedTrial(scenario, *, on_violation: str = "stop") -> dict:
     trial: success, and the referee's rule breaks on the true cloth and the
     gripper-object contacts. It is never cut short (the demo is the
     ceiling), but under "stop" a break or a contact makes it a failure."""
-    from fabric_imitation.diagrams.demos import ScriptedDemoPlan
-    from fabric_imitation.diagrams.referee import JudgeTransitions, TaskReferee
-    from fabric_imitation.diagrams.simulation import OpenLoopRun
     from fabric_imitation.diagrams.station import StationPorts
     from fabric_imitation.learning.state import PlanarPose, world_to_object
+    from fabric_imitation.tasks.demos import ScriptedDemoPlan
+    from fabric_imitation.tasks.referee import JudgeTransitions, TaskReferee
+    from fabric_imitation.tools.simulation import OpenLoopRun
 
     plan = ScriptedDemoPlan(scenario)
     run = OpenLoopRun(scenario, actions=plan.actions, release_step=plan.release_step)
@@ -334,7 +331,7 @@ def ScriptedTrial(scenario, *, on_violation: str = "stop") -> dict:
 def _RayTrials(jobs: list[dict], workers: int, prepared: dict):
     """Runs the trials on Ray actors (each learns nothing: it gets what was
     learned from the demos once); yields rows as they finish."""
-    from fabric_imitation.diagrams.collect import StartRay
+    from fabric_imitation.tools.collect import StartRay
 
     ray = StartRay(workers)
     from ray.util import ActorPool
@@ -421,7 +418,7 @@ def CodeFingerprint() -> str:
     root = Path(__file__).resolve().parent.parent
     files = [
         p
-        for folder in ("diagrams", "systems", "learning", "scenarios")
+        for folder in ("learning", "scenarios", "systems", "tasks", "diagrams", "tools")
         for p in (root / folder).rglob("*")
         if p.suffix in (".py", ".yaml")
         and "__pycache__" not in p.parts
@@ -443,8 +440,8 @@ def TrialFingerprints(
     scenario (at its nominal poses). Rows of a table must share the first
     four; a row also the last two (`fabric-imitate report` checks)."""
     from fabric_imitation.diagrams.imitation import DEFAULT_PRIORS, DefaultDemoDir
-    from fabric_imitation.diagrams.referee import TaskReferee
     from fabric_imitation.scenarios.schema import Scenario
+    from fabric_imitation.tasks.referee import TaskReferee
     from pydrake.common.yaml import yaml_dump_typed
 
     scenario = TrialScenario(scenario_name, scenario_text, None)
@@ -499,10 +496,10 @@ def Evaluate(
     count. `seed` also draws each trial's cloth start (ClothStarts).
 
     `on_violation`: "stop" ends a trial at the referee's first rule break or
-    gripper-object contact on the true cloth (diagrams/referee.py); "count"
+    gripper-object contact on the true cloth (tasks/referee.py); "count"
     only counts. Trials run in worker processes that are replaced after
     `worker_trials` trials each (0: with one worker, in this process)."""
-    from fabric_imitation.diagrams.referee import ON_VIOLATION
+    from fabric_imitation.tasks.referee import ON_VIOLATION
 
     if on_violation not in ON_VIOLATION:
         raise InputError(

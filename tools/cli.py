@@ -162,7 +162,7 @@ def _add_simulate(p):
 
 @command("simulate")(_add_simulate)
 def _simulate(args) -> dict:
-    from fabric_imitation.diagrams.runs import Simulate
+    from fabric_imitation.tools.runs import Simulate
 
     return Simulate(
         scenario=LoadScenarioFromArgs(args),
@@ -204,7 +204,7 @@ def _add_demo_record(p):
 
 @command("demo record")(_add_demo_record)
 def _demo_record(args) -> dict:
-    from fabric_imitation.diagrams.demo_record import RecordDemo
+    from fabric_imitation.tools.demo_record import RecordDemo
 
     return RecordDemo(
         scenario=LoadScenarioFromArgs(args),
@@ -276,13 +276,13 @@ def _add_demo_import(p):
 
 @command("demo import")(_add_demo_import)
 def _demo_import(args) -> dict:
-    from fabric_imitation.diagrams.demo_record import ImportDemoForScenario
     from fabric_imitation.learning.demo_import import (
         MarkerSpec,
         ReadBag,
         ReadRecording,
         ReadVideo,
     )
+    from fabric_imitation.tools.demo_record import ImportDemoForScenario
 
     scenario = LoadScenarioFromArgs(args)
     if args.bag is not None:
@@ -353,7 +353,7 @@ def _add_collect(p):
 
 @command("collect")(_add_collect)
 def _collect(args) -> dict:
-    from fabric_imitation.diagrams.collect import Collect
+    from fabric_imitation.tools.collect import Collect
 
     return Collect(
         scenario=LoadScenarioFromArgs(args),
@@ -461,7 +461,7 @@ def _on_violation_flag(p) -> None:
 
 @command("imitate")(_add_imitate)
 def _imitate(args) -> dict:
-    from fabric_imitation.diagrams.imitation import Imitate
+    from fabric_imitation.tools.episode import Imitate
 
     scenario = LoadScenarioFromArgs(args)
     lcm = None
@@ -552,7 +552,7 @@ def _add_evaluate(p):
 
 @command("evaluate")(_add_evaluate)
 def _evaluate(args) -> dict:
-    from fabric_imitation.diagrams.evaluate import Evaluate
+    from fabric_imitation.tools.evaluate import Evaluate
 
     return Evaluate(
         scenario_names=args.scenarios,
@@ -602,7 +602,7 @@ def _add_bench_sim(p):
 
 @command("bench sim")(_add_bench_sim)
 def _bench_sim(args) -> dict:
-    from fabric_imitation.diagrams.bench import BenchSim
+    from fabric_imitation.tools.bench import BenchSim
 
     return BenchSim(
         scenario_names=args.scenarios,
@@ -624,7 +624,7 @@ def _add_bench_collect(p):
 
 @command("bench collect")(_add_bench_collect)
 def _bench_collect(args) -> dict:
-    from fabric_imitation.diagrams.bench import BenchCollect
+    from fabric_imitation.tools.bench import BenchCollect
 
     return BenchCollect(transitions=args.transitions, out=args.out)
 
@@ -642,7 +642,7 @@ def _add_bench_train(p):
 
 @command("bench train")(_add_bench_train)
 def _bench_train(args) -> dict:
-    from fabric_imitation.diagrams.bench import BenchTrain
+    from fabric_imitation.tools.bench import BenchTrain
 
     return BenchTrain(
         data=args.data, out=args.out, keypoint_epochs=args.keypoint_epochs
@@ -659,7 +659,7 @@ def _add_bench_mpc(p):
 
 @command("bench mpc")(_add_bench_mpc)
 def _bench_mpc(args) -> dict:
-    from fabric_imitation.diagrams.bench import BenchMpc
+    from fabric_imitation.tools.bench import BenchMpc
 
     return BenchMpc(
         scenario_name=args.scenario,
@@ -680,7 +680,7 @@ def _add_bench_occlusion(p):
 
 @command("bench occlusion")(_add_bench_occlusion)
 def _bench_occlusion(args) -> dict:
-    from fabric_imitation.diagrams.bench import BenchOcclusion
+    from fabric_imitation.tools.bench import BenchOcclusion
 
     return BenchOcclusion(priors_dir=args.priors, out=args.out, seed=args.seed)
 
@@ -703,12 +703,12 @@ def _add_report(p):
 
 @command("report")(_add_report)
 def _report(args) -> dict:
-    from fabric_imitation.diagrams.report import Report
+    from fabric_imitation.tools.report import Report
 
     return Report(runs=args.runs, out=args.out)
 
 
-# The referee's rules for a violation (diagrams/referee.py's ON_VIOLATION;
+# The referee's rules for a violation (tasks/referee.py's ON_VIOLATION;
 # repeated here so that a bad flag is refused before torch is imported).
 ON_VIOLATION = ("stop", "count")
 
@@ -749,7 +749,7 @@ def _CheckArgs(args) -> None:
             raise InputError(f"--{name} must be at least 1, got {value}")
     protocol = getattr(args, "protocol", None)
     if protocol is not None:
-        from fabric_imitation.diagrams.evaluate import PROTOCOLS
+        from fabric_imitation.tools.evaluate import PROTOCOLS
 
         if protocol not in PROTOCOLS:
             raise InputError(

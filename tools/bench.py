@@ -19,13 +19,13 @@ import time
 from pathlib import Path
 
 import numpy as np
-from fabric_imitation.diagrams.demos import ScriptedDemoPlan
-from fabric_imitation.diagrams.simulation import OpenLoopRun
-from fabric_imitation.diagrams.station import SIDES, StationPorts
-from fabric_imitation.diagrams.success import TaskSuccess
-from fabric_imitation.learning.state import world_to_object
+from fabric_imitation.diagrams.station import StationPorts
+from fabric_imitation.learning.state import SIDES, world_to_object
 from fabric_imitation.scenarios.loader import LoadScenario
 from fabric_imitation.scenarios.schema import Scenario, yaw_rad
+from fabric_imitation.tasks.demos import ScriptedDemoPlan
+from fabric_imitation.tasks.success import TaskSuccess
+from fabric_imitation.tools.simulation import OpenLoopRun
 
 DEFAULT_SCENARIOS = ("prior", "box", "hang", "box_big", "box_panda", "hang_panda")
 # A vertex may sink this far [m] into the table or the object (contact is
@@ -342,7 +342,7 @@ def BenchCollect(
     import shutil
     import tempfile
 
-    from fabric_imitation.diagrams.collect import Collect
+    from fabric_imitation.tools.collect import Collect
 
     scenario = LoadScenario(scenario_name="prior")
     root = Path(workdir or tempfile.mkdtemp(prefix="bench_collect_"))
@@ -445,9 +445,9 @@ def BenchMpc(
         DefaultDemoDir,
         ObjectSafetyContext,
         PrepareImitation,
-        TorchThreads,
     )
     from fabric_imitation.learning.mpc import Mpc
+    from fabric_imitation.tools.episode import TorchThreads
 
     torch.set_num_threads(threads or TorchThreads())
     scenario = LoadScenario(scenario_name=scenario_name)

@@ -10,10 +10,11 @@ import dataclasses as dc
 import math
 
 import numpy as np
-from fabric_imitation.diagrams.station import GraspCapsules, GraspCorners
 from fabric_imitation.learning.errors import InputError
 from fabric_imitation.learning.state import object_to_world
+from fabric_imitation.scenarios.poses import GraspCorners
 from fabric_imitation.scenarios.schema import Scenario, yaw_rad
+from fabric_imitation.systems.gripper_contact import GraspCapsules
 
 
 @dc.dataclass
