@@ -69,8 +69,8 @@ from fabric_imitation.tasks.referee import (
     ON_VIOLATION,
     FirstBreak,
     JudgeTransitions,
-    ObjectSafetyContext,
     TaskReferee,
+    TaskSafetyContext,
 )
 from pydrake.systems.framework import Diagram, DiagramBuilder
 from pydrake.systems.primitives import LogVectorOutput, Multiplexer, VectorLogSink
@@ -237,11 +237,18 @@ def MakeImitationDiagram(
             f"unknown on-violation rule {on_violation!r}; use "
             f"{' or '.join(ON_VIOLATION)}"
         )
+    if controller not in CONTROLLERS:
+        raise InputError(
+            f"unknown controller {controller!r}; use {', '.join(CONTROLLERS)}"
+        )
+    if controller in BASELINE_CONTROLLERS and prepared.baselines is None:
+        raise InputError(
+            f"controller {controller!r} needs PrepareImitation(..., baselines=True)"
+        )
     cfg = mpc_config or scenario.mpc
-    priors, demo = prepared.priors, prepared.model
     dt = scenario.motion.step_seconds
     start = dt if hardware else 0.0
-    m = priors.num_keypoints
+    m = prepared.priors.num_keypoints
     builder = DiagramBuilder()
     if hardware:
         from pydrake.lcm import DrakeLcm
@@ -255,97 +262,26 @@ def MakeImitationDiagram(
         people_camera=video and not hardware,
     )
     builder.AddNamedSystem("station", station.diagram)
-    cam = scenario.camera
     estimator = builder.AddNamedSystem(
-        "keypoint_estimator",
-        KeypointEstimator(
-            priors=priors,
-            num_keypoints=m,
-            width=cam.width,
-            height=cam.height,
-            period=dt,
-            offset=start,
-            misread_grasp_error=scenario.safety.misread_grasp_error,
-            max_side_length=scenario.safety.misread_side_stretch
-            * scenario.cloth.size[1],
-        ),
+        "keypoint_estimator", _KeypointEstimator(scenario, prepared.priors, start)
     )
     reward = builder.AddNamedSystem(
-        "demo_reward", DemoReward(demo=demo, num_keypoints=m)
+        "demo_reward", DemoReward(demo=prepared.model, num_keypoints=m)
     )
-    if controller in ("zero", "cfm", "tcn", "tcn_mpc") and prepared.baselines is None:
-        raise InputError(
-            f"controller {controller!r} needs PrepareImitation(..., baselines=True)"
-        )
-    mpc_args = dict(
-        dynamics=priors,
-        demo=demo,
-        safety=scenario.safety,
-        safety_ctx=ObjectSafetyContext(scenario, estimated=True),
+    parts = _ControllerParts(
+        scenario=scenario,
+        prepared=prepared,
         config=cfg,
+        seed=scenario.random_seed if seed is None else seed,
+        timing=dict(
+            num_keypoints=m,
+            period=dt,
+            offset=start + EVENT_STAGGER,
+            step_cap=int(cfg.step_cap_factor * prepared.model.T) + 5,
+        ),
     )
-    if controller == "tcn_mpc":
-        from fabric_imitation.learning.baseline_policies import TcnMpc
-
-        mpc = TcnMpc(baselines=prepared.baselines, **mpc_args)
-    else:
-        mpc = Mpc(**mpc_args)
-    timing = dict(
-        num_keypoints=m,
-        period=dt,
-        offset=start + EVENT_STAGGER,
-        step_cap=int(cfg.step_cap_factor * demo.T) + 5,
-    )
-    seed = scenario.random_seed if seed is None else seed
-    # The baselines' moves pass only the driver's limits (max_step, reach box).
-    from fabric_imitation.learning.limits import DriverLimits
-
-    limits = DriverLimits.FromSafety(scenario.safety, mpc_args["safety_ctx"])
-    if controller in ("mpc", "tcn_mpc"):
-        system = MpcController(mpc=mpc, seed=seed, **timing)
-    elif controller == "zero":
-        from fabric_imitation.learning.baseline_policies import ZeroFollower
-
-        follower = ZeroFollower(prepared.baselines, prepared.demo_states, limits=limits)
-        system = ZeroController(follower=follower, **timing)
-    elif controller == "cfm":
-        from fabric_imitation.learning.baseline_policies import (
-            CfmConfig,
-            CfmPlanner,
-        )
-
-        planner = CfmPlanner(
-            prepared.baselines,
-            prepared.demo_states,
-            limits=limits,
-            config=CfmConfig(num_samples=cfg.num_samples),
-        )
-        system = CfmController(planner=planner, seed=seed, **timing)
-    elif controller == "tcn":
-        from fabric_imitation.learning.baseline_policies import TcnPlanner
-        from fabric_imitation.systems.imitation import TcnController
-
-        # H: the control steps the demo took, from its frame times.
-        times = prepared.demo.manifest.get("frame_times") or []
-        planner = TcnPlanner(
-            prepared.baselines,
-            priors,
-            prepared.demo_states,
-            limits=limits,
-            demo_steps=round((times[-1] - times[0]) / dt) if len(times) > 1 else None,
-        )
-        system = TcnController(planner=planner, seed=seed, **timing)
-    elif controller == "replay":
-        corners = corner_indices(m)
-        path = prepared.demo_states[:, [corners["s1"], corners["s2"]]]
-        system = ReplayController(
-            path=path, max_step=scenario.safety.max_step, **timing
-        )
-    else:
-        raise InputError(
-            f"unknown controller {controller!r}; use mpc, replay, zero, cfm, tcn "
-            "or tcn_mpc"
-        )
+    mpc = parts.mpc(controller)
+    system = CONTROLLERS[controller](parts, mpc)
     controller = builder.AddNamedSystem("controller", system)
     targets = builder.AddNamedSystem(
         "targets",
@@ -355,108 +291,26 @@ def MakeImitationDiagram(
             start_at_first_step=hardware,
         ),
     )
-    pose = builder.AddNamedSystem("object_pose", PlanarPoseVector())
-    builder.Connect(
-        station.diagram.GetOutputPort(StationPorts.OBJECT_POSE),
-        pose.GetInputPort("pose"),
-    )
-    builder.Connect(
-        station.diagram.GetOutputPort(StationPorts.MASK), estimator.GetInputPort("mask")
-    )
-    builder.Connect(
-        station.diagram.GetOutputPort(StationPorts.DEPTH),
-        estimator.GetInputPort("depth"),
-    )
-    for system in (estimator, controller):
-        builder.Connect(
-            station.diagram.GetOutputPort(StationPorts.OBJECT_POSE),
-            system.GetInputPort("object_pose"),
-        )
-    grippers = builder.AddNamedSystem("gripper_positions", Multiplexer([3, 3]))
-    for k, side in enumerate(SIDES):
-        builder.Connect(
-            station.diagram.GetOutputPort(StationPorts.ee_measured(side)),
-            grippers.get_input_port(k),
-        )
-    builder.Connect(grippers.get_output_port(), estimator.GetInputPort("grippers"))
-    builder.Connect(grippers.get_output_port(), targets.GetInputPort("measured"))
-    for system in (reward, controller):
-        builder.Connect(
-            estimator.GetOutputPort("keypoints"), system.GetInputPort("keypoints")
-        )
-    if controller.HasInputPort("remembered_far_corners"):
-        builder.Connect(
-            estimator.GetOutputPort("remembered_far_corners"),
-            controller.GetInputPort("remembered_far_corners"),
-        )
+    pose, grippers = _WireLoop(builder, station, estimator, reward, controller, targets)
+    referee = None
     if not hardware:
         referee = _AddReferee(builder, scenario, station, controller, m, dt, start)
         if on_violation == "stop":
             builder.Connect(
                 referee.GetOutputPort("halt"), controller.GetInputPort("halt")
             )
-    builder.Connect(controller.GetOutputPort("action"), targets.GetInputPort("action"))
-    builder.Connect(
-        controller.GetOutputPort("release"),
-        station.diagram.GetInputPort(StationPorts.RELEASE),
-    )
-    for side in SIDES:
-        builder.Connect(
-            targets.GetOutputPort(f"{side}.ee_target"),
-            station.diagram.GetInputPort(StationPorts.ee_target(side)),
-        )
-    # The paper's Chamfer distance to the demo's last frame, every step.
-    camera_model = PinholeCamera.from_model(CameraModelFromConfig(scenario.camera))
-    target_W = cloud_from_depth(
-        camera_model,
-        prepared.demo.final_depth,
-        prepared.demo.final_mask,
-        np.random.default_rng(0),
-    )
-    chamfer = builder.AddNamedSystem(
-        "chamfer_to_demo",
-        ChamferToDemo(
-            camera=camera_model,
-            target_O=world_to_object(target_W, prepared.demo.object_pose),
-            width=cam.width,
-            height=cam.height,
-            period=dt,
-            offset=start,
-        ),
-    )
-    for port, name in (
-        (StationPorts.MASK, "mask"),
-        (StationPorts.DEPTH, "depth"),
-        (StationPorts.OBJECT_POSE, "object_pose"),
-    ):
-        builder.Connect(station.diagram.GetOutputPort(port), chamfer.GetInputPort(name))
+    _WireCommands(builder, station, controller, targets)
+    chamfer = _AddChamfer(builder, scenario, prepared, station, start)
     logged = {
         "chamfer": chamfer.GetOutputPort("chamfer"),
         "estimated_keypoints": estimator.GetOutputPort("keypoints"),
         "object_pose": pose.GetOutputPort("vector"),
         "grippers": grippers.get_output_port(),
         "reward": reward.GetOutputPort("reward"),
-        **{
-            name: controller.GetOutputPort(name)
-            for name in (
-                "action",
-                "termination",
-                "steps",
-                "progress",
-                "solve_ms",
-                "iterations",
-            )
-        },
+        **{name: controller.GetOutputPort(name) for name in CONTROLLER_LOGS},
     }
-    if not hardware:
-        logged["true_keypoints"] = station.diagram.GetOutputPort(
-            StationPorts.CLOTH_KEYPOINTS
-        )
-        logged["halt"] = referee.GetOutputPort("halt")
-        if station.diagram.HasOutputPort(StationPorts.GRIPPER_OBJECT_CONTACT):
-            logged["contact"] = station.diagram.GetOutputPort(
-                StationPorts.GRIPPER_OBJECT_CONTACT
-            )
+    if referee is not None:
+        logged.update(_GroundTruthLogs(station, referee))
     loggers = {}
     for name, port in logged.items():
         loggers[name] = LogVectorOutput(port, builder, publish_period=dt)
@@ -492,6 +346,231 @@ def MakeImitationDiagram(
         lcm=lcm,
         video=recorder,
     )
+
+
+# The controller outputs every episode logs, once per control step.
+CONTROLLER_LOGS = (
+    "action",
+    "termination",
+    "steps",
+    "progress",
+    "solve_ms",
+    "iterations",
+)
+
+
+def _KeypointEstimator(
+    scenario: Scenario, priors: Priors, start: float
+) -> KeypointEstimator:
+    cam = scenario.camera
+    return KeypointEstimator(
+        priors=priors,
+        num_keypoints=priors.num_keypoints,
+        width=cam.width,
+        height=cam.height,
+        period=scenario.motion.step_seconds,
+        offset=start,
+        misread_grasp_error=scenario.safety.misread_grasp_error,
+        max_side_length=scenario.safety.misread_side_stretch * scenario.cloth.size[1],
+    )
+
+
+@dc.dataclass
+class _ControllerParts:
+    """What every step controller is built from."""
+
+    scenario: Scenario
+    prepared: PreparedImitation
+    config: MpcConfig
+    seed: int
+    timing: dict  # num_keypoints, period, offset, step_cap
+
+    def mpc(self, controller: str) -> Mpc:
+        """The method's planner (with the TCN reward for "tcn_mpc"); every
+        ImitationDiagram keeps one."""
+        args = dict(
+            dynamics=self.prepared.priors,
+            demo=self.prepared.model,
+            safety=self.scenario.safety,
+            safety_ctx=TaskSafetyContext(self.scenario, estimated=True),
+            config=self.config,
+        )
+        if controller == "tcn_mpc":
+            from fabric_imitation.learning.baseline_policies import TcnMpc
+
+            return TcnMpc(baselines=self.prepared.baselines, **args)
+        return Mpc(**args)
+
+    def limits(self):
+        """The driver's limits (max_step, reach box): all the baselines'
+        moves must pass."""
+        from fabric_imitation.learning.limits import DriverLimits
+
+        return DriverLimits.FromSafety(
+            self.scenario.safety, TaskSafetyContext(self.scenario, estimated=True)
+        )
+
+
+def _MpcController(parts: _ControllerParts, mpc: Mpc):
+    return MpcController(mpc=mpc, seed=parts.seed, **parts.timing)
+
+
+def _ZeroController(parts: _ControllerParts, mpc: Mpc):
+    from fabric_imitation.learning.baseline_policies import ZeroFollower
+
+    prepared = parts.prepared
+    follower = ZeroFollower(
+        prepared.baselines, prepared.demo_states, limits=parts.limits()
+    )
+    return ZeroController(follower=follower, **parts.timing)
+
+
+def _CfmController(parts: _ControllerParts, mpc: Mpc):
+    from fabric_imitation.learning.baseline_policies import CfmConfig, CfmPlanner
+
+    planner = CfmPlanner(
+        parts.prepared.baselines,
+        parts.prepared.demo_states,
+        limits=parts.limits(),
+        config=CfmConfig(num_samples=parts.config.num_samples),
+    )
+    return CfmController(planner=planner, seed=parts.seed, **parts.timing)
+
+
+def _TcnController(parts: _ControllerParts, mpc: Mpc):
+    from fabric_imitation.learning.baseline_policies import TcnPlanner
+    from fabric_imitation.systems.imitation import TcnController
+
+    prepared, dt = parts.prepared, parts.scenario.motion.step_seconds
+    # H: the control steps the demo took, from its frame times.
+    times = prepared.demo.manifest.get("frame_times") or []
+    planner = TcnPlanner(
+        prepared.baselines,
+        prepared.priors,
+        prepared.demo_states,
+        limits=parts.limits(),
+        demo_steps=round((times[-1] - times[0]) / dt) if len(times) > 1 else None,
+    )
+    return TcnController(planner=planner, seed=parts.seed, **parts.timing)
+
+
+def _ReplayController(parts: _ControllerParts, mpc: Mpc):
+    corners = corner_indices(parts.timing["num_keypoints"])
+    path = parts.prepared.demo_states[:, [corners["s1"], corners["s2"]]]
+    return ReplayController(
+        path=path, max_step=parts.scenario.safety.max_step, **parts.timing
+    )
+
+
+# `controller` of MakeImitationDiagram -> its step controller, given the
+# parts and the planner (which only "mpc" and "tcn_mpc" use).
+CONTROLLERS = {
+    "mpc": _MpcController,
+    "replay": _ReplayController,
+    "zero": _ZeroController,
+    "cfm": _CfmController,
+    "tcn": _TcnController,
+    "tcn_mpc": _MpcController,
+}
+BASELINE_CONTROLLERS = ("zero", "cfm", "tcn", "tcn_mpc")
+
+
+def _WireLoop(builder, station, estimator, reward, controller, targets):
+    """Station -> object pose, mask, depth, measured grippers -> estimator ->
+    reward and controller. Returns the pose vector and grippers systems."""
+    pose = builder.AddNamedSystem("object_pose", PlanarPoseVector())
+    builder.Connect(
+        station.diagram.GetOutputPort(StationPorts.OBJECT_POSE),
+        pose.GetInputPort("pose"),
+    )
+    builder.Connect(
+        station.diagram.GetOutputPort(StationPorts.MASK), estimator.GetInputPort("mask")
+    )
+    builder.Connect(
+        station.diagram.GetOutputPort(StationPorts.DEPTH),
+        estimator.GetInputPort("depth"),
+    )
+    for system in (estimator, controller):
+        builder.Connect(
+            station.diagram.GetOutputPort(StationPorts.OBJECT_POSE),
+            system.GetInputPort("object_pose"),
+        )
+    grippers = builder.AddNamedSystem("gripper_positions", Multiplexer([3, 3]))
+    for k, side in enumerate(SIDES):
+        builder.Connect(
+            station.diagram.GetOutputPort(StationPorts.ee_measured(side)),
+            grippers.get_input_port(k),
+        )
+    builder.Connect(grippers.get_output_port(), estimator.GetInputPort("grippers"))
+    builder.Connect(grippers.get_output_port(), targets.GetInputPort("measured"))
+    for system in (reward, controller):
+        builder.Connect(
+            estimator.GetOutputPort("keypoints"), system.GetInputPort("keypoints")
+        )
+    if controller.HasInputPort("remembered_far_corners"):
+        builder.Connect(
+            estimator.GetOutputPort("remembered_far_corners"),
+            controller.GetInputPort("remembered_far_corners"),
+        )
+    return pose, grippers
+
+
+def _WireCommands(builder, station, controller, targets) -> None:
+    """Controller -> relative moves -> targets -> station; its release."""
+    builder.Connect(controller.GetOutputPort("action"), targets.GetInputPort("action"))
+    builder.Connect(
+        controller.GetOutputPort("release"),
+        station.diagram.GetInputPort(StationPorts.RELEASE),
+    )
+    for side in SIDES:
+        builder.Connect(
+            targets.GetOutputPort(f"{side}.ee_target"),
+            station.diagram.GetInputPort(StationPorts.ee_target(side)),
+        )
+
+
+def _AddChamfer(builder, scenario, prepared, station, start) -> ChamferToDemo:
+    """The paper's Chamfer distance to the demo's last frame, every step."""
+    cam = scenario.camera
+    camera_model = PinholeCamera(CameraModelFromConfig(cam))
+    target_W = cloud_from_depth(
+        camera_model,
+        prepared.demo.final_depth,
+        prepared.demo.final_mask,
+        np.random.default_rng(0),
+    )
+    chamfer = builder.AddNamedSystem(
+        "chamfer_to_demo",
+        ChamferToDemo(
+            camera=camera_model,
+            target_O=world_to_object(target_W, prepared.demo.object_pose),
+            width=cam.width,
+            height=cam.height,
+            period=scenario.motion.step_seconds,
+            offset=start,
+        ),
+    )
+    for port, name in (
+        (StationPorts.MASK, "mask"),
+        (StationPorts.DEPTH, "depth"),
+        (StationPorts.OBJECT_POSE, "object_pose"),
+    ):
+        builder.Connect(station.diagram.GetOutputPort(port), chamfer.GetInputPort(name))
+    return chamfer
+
+
+def _GroundTruthLogs(station, referee) -> dict:
+    """Simulation only: the true keypoints, the referee's halt and the
+    gripper-object contact."""
+    logged = {
+        "true_keypoints": station.diagram.GetOutputPort(StationPorts.CLOTH_KEYPOINTS),
+        "halt": referee.GetOutputPort("halt"),
+    }
+    if station.diagram.HasOutputPort(StationPorts.GRIPPER_OBJECT_CONTACT):
+        logged["contact"] = station.diagram.GetOutputPort(
+            StationPorts.GRIPPER_OBJECT_CONTACT
+        )
+    return logged
 
 
 def _AddReferee(builder, scenario, station, controller, m: int, dt, start) -> Referee:

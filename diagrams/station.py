@@ -650,65 +650,24 @@ def MakeClothStation(
         cloth_id, X_WC = _add_cloth(plant, scenario, mesh)
     else:
         cloth_id, X_WC = None, ClothPose(scenario)
-    corners = GraspCorners(scenario)
     dt = scenario.plant_config.time_step
-    weld_ids, clips = [], []
-    if scenario.grippers.kind == "panda":
-        from fabric_imitation.diagrams.panda import AddPandaGrippers
-
-        pandas = AddPandaGrippers(builder, plant, scene_graph, scenario, corners)
-        holders = pandas.tcp_bodies
-        X_holder_clip = pandas.X_TcpClip
-    else:
-        anchors = {
-            side: _add_anchor(plant, scenario, side, corners[side]) for side in SIDES
-        }
-        holders = {side: anchors[side][1] for side in SIDES}
-        X_holder_clip = {side: RigidTransform() for side in SIDES}
-    if scenario.grippers.hands:
-        _add_hands(plant, holders, X_holder_clip)
-    for side in SIDES if fem else ():
-        weld_id, clip = _add_clip(
-            plant,
-            scenario,
-            side,
-            holders[side],
-            X_holder_clip[side],
-            cloth_id,
-            X_WC,
-            corners[side],
-        )
-        weld_ids.append(weld_id)
-        clips.append(clip)
+    grippers = _add_grippers(builder, plant, scene_graph, scenario, cloth_id, X_WC)
     plant.Finalize()
     if scenario.grippers.kind != "panda":
         _filter_anchor_collisions(plant, scene_graph, cloth_id if fem else None)
     if scenario.object.kind != "none":
-        contact = builder.AddNamedSystem(
-            "gripper_object_contact",
-            GripperObjectContact(
-                grippers=_gripper_bodies(plant, scenario),
-                X_WO=X_WO,
-                object_size=np.array(scenario.object.size, float),
-                period=dt,
-            ),
-        )
-        builder.Connect(
-            plant.get_body_poses_output_port(), contact.GetInputPort("body_poses")
-        )
-        builder.ExportOutput(
-            contact.GetOutputPort("contact"), StationPorts.GRIPPER_OBJECT_CONTACT
-        )
+        _add_contact_monitor(builder, plant, scenario, X_WO)
 
     initialize = None
-    if scenario.grippers.kind == "panda":
-        initialize = pandas.Wire(builder, joint_commands=joint_commands)
+    if grippers.pandas is not None:
+        initialize = grippers.pandas.Wire(builder, joint_commands=joint_commands)
         measured = {
             side: builder.GetSubsystemByName("tcp_positions").GetOutputPort(side)
             for side in SIDES
         }
     else:
-        measured = _wire_anchors(builder, plant, {s: anchors[s][0] for s in SIDES}, dt)
+        anchors = {s: grippers.anchors[s][0] for s in SIDES}
+        measured = _wire_anchors(builder, plant, anchors, dt)
 
     latch = builder.AddNamedSystem("release_latch", ReleaseLatch(period=dt))
     builder.ExportInput(latch.GetInputPort("release"), StationPorts.RELEASE)
@@ -726,19 +685,7 @@ def MakeClothStation(
     builder.ExportOutput(object_pose.get_output_port(), StationPorts.OBJECT_POSE)
 
     if fem:
-        model = plant.deformable_model()
-        truth = builder.AddNamedSystem(
-            "cloth_ground_truth",
-            ClothGroundTruth(
-                geometry_id=model.GetGeometryId(cloth_id),
-                num_vertices=len(mesh.vertices),
-                keypoint_vertices=mesh.keypoint_vertices(NUM_KEYPOINTS),
-            ),
-        )
-        builder.Connect(
-            plant.get_deformable_body_configuration_output_port(),
-            truth.GetInputPort("configuration"),
-        )
+        truth = _add_fem_truth(builder, plant, mesh, cloth_id)
     else:
         truth = _add_vbd_cloth(builder, scene_graph, scenario, mesh, X_WC, X_WO)
         cloth_id = truth
@@ -757,7 +704,6 @@ def MakeClothStation(
             meshcat,
             MeshcatVisualizerParams(role=Role.kIllustration, prefix="scene"),
         )
-
     diagram = builder.Build()
     diagram.set_name("cloth_station")
     return ClothStation(
@@ -769,11 +715,91 @@ def MakeClothStation(
         plant=plant,
         mesh=mesh,
         cloth_id=cloth_id,
-        weld_ids=tuple(weld_ids),
-        clips=tuple(clips),
+        weld_ids=tuple(w for w, _ in grippers.welds),
+        clips=tuple(c for _, c in grippers.welds),
         X_WCloth=X_WC,
         initialize=initialize,
     )
+
+
+@dc.dataclass
+class _Grippers:
+    """The station's grippers in the plant: Panda arms or anchors, and (FEM
+    cloth) each grasped corner's weld and clip."""
+
+    pandas: object | None  # panda.PandaGrippers
+    anchors: dict | None  # side -> (model instance, body)
+    welds: list  # (weld id, clip body) per side
+
+
+def _add_grippers(builder, plant, scene_graph, scenario, cloth_id, X_WC) -> _Grippers:
+    corners = GraspCorners(scenario)
+    pandas, anchors = None, None
+    if scenario.grippers.kind == "panda":
+        from fabric_imitation.diagrams.panda import AddPandaGrippers
+
+        pandas = AddPandaGrippers(builder, plant, scene_graph, scenario, corners)
+        holders = pandas.tcp_bodies
+        X_holder_clip = pandas.X_TcpClip
+    else:
+        anchors = {
+            side: _add_anchor(plant, scenario, side, corners[side]) for side in SIDES
+        }
+        holders = {side: anchors[side][1] for side in SIDES}
+        X_holder_clip = {side: RigidTransform() for side in SIDES}
+    if scenario.grippers.hands:
+        _add_hands(plant, holders, X_holder_clip)
+    welds = [
+        _add_clip(
+            plant,
+            scenario,
+            side,
+            holders[side],
+            X_holder_clip[side],
+            cloth_id,
+            X_WC,
+            corners[side],
+        )
+        for side in (SIDES if cloth_id is not None else ())
+    ]
+    return _Grippers(pandas=pandas, anchors=anchors, welds=welds)
+
+
+def _add_contact_monitor(builder, plant, scenario: Scenario, X_WO) -> None:
+    """GripperObjectContact on the plant's body poses, every plant step."""
+    contact = builder.AddNamedSystem(
+        "gripper_object_contact",
+        GripperObjectContact(
+            grippers=_gripper_bodies(plant, scenario),
+            X_WO=X_WO,
+            object_size=np.array(scenario.object.size, float),
+            period=scenario.plant_config.time_step,
+        ),
+    )
+    builder.Connect(
+        plant.get_body_poses_output_port(), contact.GetInputPort("body_poses")
+    )
+    builder.ExportOutput(
+        contact.GetOutputPort("contact"), StationPorts.GRIPPER_OBJECT_CONTACT
+    )
+
+
+def _add_fem_truth(builder, plant, mesh: ClothMesh, cloth_id) -> ClothGroundTruth:
+    """The FEM cloth's vertex positions and keypoints from the plant."""
+    model = plant.deformable_model()
+    truth = builder.AddNamedSystem(
+        "cloth_ground_truth",
+        ClothGroundTruth(
+            geometry_id=model.GetGeometryId(cloth_id),
+            num_vertices=len(mesh.vertices),
+            keypoint_vertices=mesh.keypoint_vertices(NUM_KEYPOINTS),
+        ),
+    )
+    builder.Connect(
+        plant.get_deformable_body_configuration_output_port(),
+        truth.GetInputPort("configuration"),
+    )
+    return truth
 
 
 def _wire_anchors(
@@ -922,15 +948,8 @@ def CameraModelFromConfig(config):
     from fabric_imitation.learning.demo_io import CameraModel
 
     color, _ = config.MakeCameras()
-    k = color.core().intrinsics()
-    return CameraModel(
-        width=k.width(),
-        height=k.height(),
-        fx=k.focal_x(),
-        fy=k.focal_y(),
-        cx=k.center_x(),
-        cy=k.center_y(),
-        X_WC=config.X_PB.GetDeterministicValue().GetAsMatrix4(),
+    return CameraModel.FromIntrinsics(
+        color.core().intrinsics(), config.X_PB.GetDeterministicValue().GetAsMatrix4()
     )
 
 

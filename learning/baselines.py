@@ -480,17 +480,13 @@ def train_baselines(ds, *, cfg: BaselineTrainConfig | None = None, log=print):
         total = np.zeros(6)
         batches = 0
         for i in range(0, len(perm) - cfg.batch_size + 1, cfg.batch_size):
-            idx = perm[i : i + cfg.batch_size]
-            l_inv, l_fwd, l_con, l_nce = losses(idx)
+            l_inv, l_fwd, l_con, l_nce = losses(perm[i : i + cfg.batch_size])
             l_rec = recognizer_loss()
-            loss = l_inv + l_fwd + cfg.consistency_weight * l_con + l_nce + l_rec
-            opt.zero_grad()
-            loss.backward()
-            opt.step()
+            _descend(
+                opt, l_inv + l_fwd + cfg.consistency_weight * l_con + l_nce + l_rec
+            )
             l_tcn = _tcn_loss(nets["tcn"], norms, tcn_states, triplets, cfg, gen)
-            tcn_opt.zero_grad()
-            l_tcn.backward()
-            tcn_opt.step()
+            _descend(tcn_opt, l_tcn)
             total += [
                 float(v.detach()) for v in (l_inv, l_fwd, l_con, l_nce, l_tcn, l_rec)
             ]
@@ -522,6 +518,13 @@ def train_baselines(ds, *, cfg: BaselineTrainConfig | None = None, log=print):
         },
     }
     return out
+
+
+def _descend(optimizer, loss) -> None:
+    """One gradient step of `optimizer` on `loss`."""
+    optimizer.zero_grad()
+    loss.backward()
+    optimizer.step()
 
 
 @torch.no_grad()

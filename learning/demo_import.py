@@ -30,6 +30,7 @@ from pathlib import Path
 
 import numpy as np
 import torch
+from fabric_imitation.learning.demo_io import CameraModel
 from fabric_imitation.learning.errors import InputError
 from fabric_imitation.learning.geometry import PinholeCamera
 
@@ -542,180 +543,34 @@ def ImportDemo(
         )
     if ExistingDemoRequest(Path(out)) is not None:
         raise InputError(f"output directory {out} already holds a demo")
-    rec = recording
+    rec, target = recording, camera
     T, H, W = rec.depth.shape
-    target = camera
-    # The control camera's images: the recording scaled down to its size.
-    sx, sy = target.width / W, target.height / H
-    K_scaled = rec.K * np.array([[sx], [sy], [1.0]])
-    K_target = np.array(
-        [[target.fx, 0, target.cx], [0, target.fy, target.cy], [0, 0, 1]]
-    )
-    # Pixel-centre convention: scaling maps u -> (u + 0.5) s - 0.5.
-    K_scaled[0, 2] = (rec.K[0, 2] + 0.5) * sx - 0.5
-    K_scaled[1, 2] = (rec.K[1, 2] + 0.5) * sy - 0.5
-    if not np.allclose(K_scaled, K_target, rtol=0.02, atol=1.0):
-        raise InputError(
-            f"the recording's intrinsics (fx {rec.K[0, 0]:.1f}, fy {rec.K[1, 1]:.1f}, "
-            f"cx {rec.K[0, 2]:.1f}, cy {rec.K[1, 2]:.1f} at {W} x {H}) do not match "
-            f"the scenario's camera scaled to it (fx {target.fx / sx:.1f}, "
-            f"fy {target.fy / sy:.1f} at {target.width} x {target.height}); set "
-            "camera in the scenario to the real camera's"
-        )
-    # Camera pose: the scenario's, or from the table marker.
-    X_WC = np.asarray(target.X_WC, float)
-    camera_from = "scenario"
-    if table_marker is not None:
-        poses = []
-        for k in range(T):
-            c = DetectMarker(rec.rgb[k], marker.dictionary, int(table_marker["id"]))
-            if c is not None:
-                poses.append(
-                    CameraPoseFromTableMarker(
-                        c,
-                        rec.K,
-                        table_marker["size"],
-                        table_marker["pose"],
-                        depth=rec.depth[k],
-                    )
-                )
-        if not poses:
-            raise InputError(
-                f"{rec.source}: table marker {table_marker['id']} found in no frame"
-            )
-        X_WC = poses[len(poses) // 2]
-        camera_from = f"table marker {table_marker['id']} ({len(poses)} frames)"
+    _CheckIntrinsics(rec, target)
+    X_WC, camera_from = _CameraPose(rec, target, marker, table_marker)
     # The recording's camera at its pose, for heights above the table.
     K = rec.K
     camera_W = PinholeCamera(
-        width=W, height=H, fx=K[0, 0], fy=K[1, 1], cx=K[0, 2], cy=K[1, 2], X_WC=X_WC
-    )
-    # Masks.
-    if masks is None:
-        if hsv is None:
-            raise InputError("give --fabric-hsv LOW HIGH or --mask-video")
-        masks = np.stack(
-            [
-                FabricMask(f, *hsv, height=HeightAboveTable(camera_W, d))
-                for f, d in zip(rec.rgb, rec.depth, strict=True)
-            ]
+        CameraModel(
+            width=W, height=H, fx=K[0, 0], fy=K[1, 1], cx=K[0, 2], cy=K[1, 2], X_WC=X_WC
         )
-    else:
-        masks = (np.asarray(masks) > 0).astype(np.uint8)
-        if masks.shape != (T, H, W):
-            raise InputError(
-                f"mask video has {masks.shape[0]} frames of {masks.shape[2]} x "
-                f"{masks.shape[1]}; the recording {T} of {W} x {H}"
-            )
+    )
+    masks = _FabricMasks(rec, camera_W, hsv, masks)
     area = masks.reshape(T, -1).mean(1)
-    if (area == 0).mean() > 0.5:
-        raise InputError(
-            f"{rec.source}: the fabric mask is empty in {int((area == 0).sum())} of "
-            f"{T} frames (check --fabric-hsv)"
-        )
-    if (area > 0.95).mean() > 0.5:
-        raise InputError(
-            f"{rec.source}: the fabric mask covers the whole image in "
-            f"{int((area > 0.95).sum())} of {T} frames (check --fabric-hsv)"
-        )
-    # The object's pose per frame from its marker, on the plane of its face.
-    plane_z = float(marker.offset[2])
-    per_frame = np.full((T, 3), np.nan)
-    for k in range(T):
-        c = DetectMarker(rec.rgb[k], marker.dictionary, marker.marker_id)
-        if c is not None:
-            per_frame[k] = ObjectPoseFromMarker(
-                MarkerPoseOnPlane(c, rec.K, X_WC, plane_z), marker.offset
-            )
-    found = ~np.isnan(per_frame[:, 0])
-    if not found.any():
-        raise InputError(
-            f"{rec.source}: marker {marker.marker_id} ({marker.dictionary}) "
-            "found in no frame"
-        )
-    pose = np.median(per_frame[found], 0)
-    pose[2] = math.atan2(
-        np.sin(per_frame[found, 2]).mean(), np.cos(per_frame[found, 2]).mean()
-    )
-    spread_m = float(np.linalg.norm(per_frame[found, :2] - pose[:2], axis=1).max())
-    spread_deg = float(np.degrees(np.abs(_wrap(per_frame[found, 2] - pose[2])).max()))
-    if spread_m > MAX_POSE_SPREAD_M or spread_deg > MAX_POSE_SPREAD_DEG:
-        raise InputError(
-            f"{rec.source}: the object's marker moved during the demo (by "
-            f"{100 * spread_m:.1f} cm, {spread_deg:.1f} deg); a demo's object stays put"
-        )
+    pose, found, spread_m, spread_deg = _ObjectPose(rec, marker, X_WC)
     gaps = _gaps(found)
     long_gap = max_gap_seconds * rec.fps
-    # Subsample to the control period.
+    # Subsample to the control period, then drop the still frames.
     dt = step_seconds
     stride = max(1, int(round(rec.fps * dt)))
-    chosen = list(range(0, T - 1, stride))
-    # A person waits before starting and lets the cloth settle after letting
-    # go: the demo runs from one frame before the operator's hands start
-    # moving the fabric to the last frame in which they still did (hands:
-    # skin-coloured pixels above the table next to the fabric); the last
-    # recorded frame is the demo's final observation. Without hands in view,
-    # by the fabric's own motion (its mask changing by more than
-    # STILL_CHANGE per step).
-    hands = [
-        HandsOnFabric(rec.rgb[k], rec.depth[k], masks[k], camera_W) for k in chosen
-    ]
-    if sum(h is not None for h in hands) >= 2:
-        moved = [
-            a is not None
-            and b is not None
-            and float(np.linalg.norm(a - b)) > HANDS_MOVE_M
-            for a, b in zip(hands[:-1], hands[1:], strict=True)
-        ]
-        trim_by = "the hands on the fabric"
-    else:
-        moved = [
-            _mask_change(masks[chosen[i]], masks[chosen[i + 1]]) > STILL_CHANGE
-            for i in range(len(chosen) - 1)
-        ]
-        trim_by = "the fabric's mask"
-    if any(moved):
-        first = moved.index(True)
-        last = len(moved) - 1 - moved[::-1].index(True)
-        trimmed = {
-            "by": trim_by,
-            "leading": first,
-            "trailing": len(chosen) - (last + 2),
-        }
-        chosen = chosen[first : last + 2]
-    else:
-        trimmed = {"by": trim_by, "leading": 0, "trailing": 0}
+    chosen, trimmed = _TrimToMotion(rec, masks, list(range(0, T - 1, stride)), camera_W)
     # Frames inside a long gap of the marker are reported; the object is
     # fixed, so its pose (the median of the detections) still holds there.
     in_long_gap = [
         k for k in chosen if any(a <= k < b and b - a > long_gap for a, b in gaps)
     ]
-
-    def small(image, interpolation):
-        return cv2.resize(
-            image, (target.width, target.height), interpolation=interpolation
-        )
-
-    def point_samples(image):
-        # At the small pixels' centres, as a camera of that size renders:
-        # no averages that would blend the cloth's edge with the table (a
-        # hanging towel seen from above is a strip 2-3 small pixels wide;
-        # mask IoU against the renderer's 0.94 sampled, 0.92 averaged).
-        if W % target.width == 0 and H % target.height == 0:
-            a, b = H // target.height, W // target.width
-            return np.ascontiguousarray(image[a // 2 :: a, b // 2 :: b])
-        return small(image, cv2.INTER_NEAREST)
-
-    def small_depth(depth):
-        return point_samples(np.nan_to_num(depth, nan=np.inf))
-
-    def small_mask(mask):
-        return point_samples(mask.astype(np.uint8))
-
-    depth_small = np.stack([small_depth(rec.depth[k]) for k in chosen])
-    mask_small = np.stack([small_mask(masks[k]) for k in chosen])
-    final_depth = small_depth(rec.depth[-1])
-    final_mask = small_mask(masks[-1])
+    size = (target.width, target.height)
+    depth_small = np.stack([_SmallDepth(rec.depth[k], size) for k in chosen])
+    mask_small = np.stack([_SmallMask(masks[k], size) for k in chosen])
     empty = [i for i in range(len(mask_small)) if not mask_small[i].any()]
     if empty:
         raise InputError(
@@ -761,17 +616,18 @@ def ImportDemo(
         else {"hsv_low": list(hsv[0]), "hsv_high": list(hsv[1])},
         "mask_area_fraction": [round(float(a), 4) for a in area],
     }
-    camera = dc.replace(target, X_WC=X_WC)
-    rgb_small = [small(rec.rgb[k], cv2.INTER_AREA) for k in [*chosen, T - 1]]
     WriteDemo(
         Path(out),
         request=request,
-        rgb=rgb_small,
+        rgb=[
+            cv2.resize(rec.rgb[k], size, interpolation=cv2.INTER_AREA)
+            for k in [*chosen, T - 1]
+        ],
         depth=depth_small.astype(np.float32),
         mask=mask_small,
-        final_depth=final_depth.astype(np.float32),
-        final_mask=final_mask,
-        camera=camera,
+        final_depth=_SmallDepth(rec.depth[-1], size).astype(np.float32),
+        final_mask=_SmallMask(masks[-1], size),
+        camera=dc.replace(target, X_WC=X_WC),
         scenario_yaml=scenario_yaml,
         ground_truth=None,
         summary=summary,
@@ -785,6 +641,184 @@ def ImportDemo(
         "mask_area_fraction_max": round(float(area.max()), 4),
         "out": str(out),
     }
+
+
+def _CheckIntrinsics(rec: Recording, target) -> None:
+    """The recording must be the control camera scaled up: its intrinsics
+    scaled down to the camera's size match the camera's."""
+    T, H, W = rec.depth.shape
+    sx, sy = target.width / W, target.height / H
+    K_scaled = rec.K * np.array([[sx], [sy], [1.0]])
+    K_target = np.array(
+        [[target.fx, 0, target.cx], [0, target.fy, target.cy], [0, 0, 1]]
+    )
+    # Pixel-centre convention: scaling maps u -> (u + 0.5) s - 0.5.
+    K_scaled[0, 2] = (rec.K[0, 2] + 0.5) * sx - 0.5
+    K_scaled[1, 2] = (rec.K[1, 2] + 0.5) * sy - 0.5
+    if not np.allclose(K_scaled, K_target, rtol=0.02, atol=1.0):
+        raise InputError(
+            f"the recording's intrinsics (fx {rec.K[0, 0]:.1f}, fy {rec.K[1, 1]:.1f}, "
+            f"cx {rec.K[0, 2]:.1f}, cy {rec.K[1, 2]:.1f} at {W} x {H}) do not match "
+            f"the scenario's camera scaled to it (fx {target.fx / sx:.1f}, "
+            f"fy {target.fy / sy:.1f} at {target.width} x {target.height}); set "
+            "camera in the scenario to the real camera's"
+        )
+
+
+def _CameraPose(rec: Recording, target, marker, table_marker) -> tuple:
+    """X_WC (4, 4): the scenario camera's, or from the table marker (the
+    middle of its detections); and where it came from."""
+    if table_marker is None:
+        return np.asarray(target.X_WC, float), "scenario"
+    poses = []
+    for k in range(len(rec.rgb)):
+        c = DetectMarker(rec.rgb[k], marker.dictionary, int(table_marker["id"]))
+        if c is not None:
+            poses.append(
+                CameraPoseFromTableMarker(
+                    c,
+                    rec.K,
+                    table_marker["size"],
+                    table_marker["pose"],
+                    depth=rec.depth[k],
+                )
+            )
+    if not poses:
+        raise InputError(
+            f"{rec.source}: table marker {table_marker['id']} found in no frame"
+        )
+    return (
+        poses[len(poses) // 2],
+        f"table marker {table_marker['id']} ({len(poses)} frames)",
+    )
+
+
+def _FabricMasks(rec: Recording, camera_W, hsv, masks) -> np.ndarray:
+    """(T, H, W) uint8 fabric masks: the given ones, or by colour; refused
+    when empty or whole in most frames."""
+    T, H, W = rec.depth.shape
+    if masks is None:
+        if hsv is None:
+            raise InputError("give --fabric-hsv LOW HIGH or --mask-video")
+        masks = np.stack(
+            [
+                FabricMask(f, *hsv, height=HeightAboveTable(camera_W, d))
+                for f, d in zip(rec.rgb, rec.depth, strict=True)
+            ]
+        )
+    else:
+        masks = (np.asarray(masks) > 0).astype(np.uint8)
+        if masks.shape != (T, H, W):
+            raise InputError(
+                f"mask video has {masks.shape[0]} frames of {masks.shape[2]} x "
+                f"{masks.shape[1]}; the recording {T} of {W} x {H}"
+            )
+    area = masks.reshape(T, -1).mean(1)
+    if (area == 0).mean() > 0.5:
+        raise InputError(
+            f"{rec.source}: the fabric mask is empty in {int((area == 0).sum())} of "
+            f"{T} frames (check --fabric-hsv)"
+        )
+    if (area > 0.95).mean() > 0.5:
+        raise InputError(
+            f"{rec.source}: the fabric mask covers the whole image in "
+            f"{int((area > 0.95).sum())} of {T} frames (check --fabric-hsv)"
+        )
+    return masks
+
+
+def _ObjectPose(rec: Recording, marker, X_WC) -> tuple:
+    """The object's [x, y, yaw] from its marker on the plane of its face:
+    per-frame poses' median (circular mean of yaw); the frames it was found
+    in, and how far the detections spread [m], [deg] (refused beyond
+    MAX_POSE_SPREAD_M / _DEG: a demo's object stays put)."""
+    T = len(rec.rgb)
+    plane_z = float(marker.offset[2])
+    per_frame = np.full((T, 3), np.nan)
+    for k in range(T):
+        c = DetectMarker(rec.rgb[k], marker.dictionary, marker.marker_id)
+        if c is not None:
+            per_frame[k] = ObjectPoseFromMarker(
+                MarkerPoseOnPlane(c, rec.K, X_WC, plane_z), marker.offset
+            )
+    found = ~np.isnan(per_frame[:, 0])
+    if not found.any():
+        raise InputError(
+            f"{rec.source}: marker {marker.marker_id} ({marker.dictionary}) "
+            "found in no frame"
+        )
+    pose = np.median(per_frame[found], 0)
+    pose[2] = math.atan2(
+        np.sin(per_frame[found, 2]).mean(), np.cos(per_frame[found, 2]).mean()
+    )
+    spread_m = float(np.linalg.norm(per_frame[found, :2] - pose[:2], axis=1).max())
+    spread_deg = float(np.degrees(np.abs(_wrap(per_frame[found, 2] - pose[2])).max()))
+    if spread_m > MAX_POSE_SPREAD_M or spread_deg > MAX_POSE_SPREAD_DEG:
+        raise InputError(
+            f"{rec.source}: the object's marker moved during the demo (by "
+            f"{100 * spread_m:.1f} cm, {spread_deg:.1f} deg); a demo's object stays put"
+        )
+    return pose, found, spread_m, spread_deg
+
+
+def _TrimToMotion(rec: Recording, masks, chosen: list[int], camera_W) -> tuple:
+    """The subsampled frames `chosen` without the still ones at either end,
+    and what was dropped.
+
+    A person waits before starting and lets the cloth settle after letting
+    go: the demo runs from one frame before the operator's hands start
+    moving the fabric to the last frame in which they still did (hands:
+    skin-coloured pixels above the table next to the fabric); the last
+    recorded frame is the demo's final observation. Without hands in view,
+    by the fabric's own motion (its mask changing by more than STILL_CHANGE
+    per step)."""
+    hands = [
+        HandsOnFabric(rec.rgb[k], rec.depth[k], masks[k], camera_W) for k in chosen
+    ]
+    if sum(h is not None for h in hands) >= 2:
+        moved = [
+            a is not None
+            and b is not None
+            and float(np.linalg.norm(a - b)) > HANDS_MOVE_M
+            for a, b in zip(hands[:-1], hands[1:], strict=True)
+        ]
+        trim_by = "the hands on the fabric"
+    else:
+        moved = [
+            _mask_change(masks[chosen[i]], masks[chosen[i + 1]]) > STILL_CHANGE
+            for i in range(len(chosen) - 1)
+        ]
+        trim_by = "the fabric's mask"
+    if not any(moved):
+        return chosen, {"by": trim_by, "leading": 0, "trailing": 0}
+    first = moved.index(True)
+    last = len(moved) - 1 - moved[::-1].index(True)
+    trimmed = {"by": trim_by, "leading": first, "trailing": len(chosen) - (last + 2)}
+    return chosen[first : last + 2], trimmed
+
+
+def _PointSamples(image: np.ndarray, size: tuple[int, int]) -> np.ndarray:
+    """`image` at the control camera's `size` (width, height), sampled at the
+    small pixels' centres, as a camera of that size renders: no averages
+    that would blend the cloth's edge with the table (a hanging towel seen
+    from above is a strip 2-3 small pixels wide; mask IoU against the
+    renderer's 0.94 sampled, 0.92 averaged)."""
+    import cv2
+
+    H, W = image.shape[:2]
+    width, height = size
+    if W % width == 0 and H % height == 0:
+        a, b = H // height, W // width
+        return np.ascontiguousarray(image[a // 2 :: a, b // 2 :: b])
+    return cv2.resize(image, size, interpolation=cv2.INTER_NEAREST)
+
+
+def _SmallDepth(depth: np.ndarray, size) -> np.ndarray:
+    return _PointSamples(np.nan_to_num(depth, nan=np.inf), size)
+
+
+def _SmallMask(mask: np.ndarray, size) -> np.ndarray:
+    return _PointSamples(mask.astype(np.uint8), size)
 
 
 # The operator's hands: skin-coloured pixels this high above the table

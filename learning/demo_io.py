@@ -40,6 +40,21 @@ class CameraModel:
     cy: float
     X_WC: np.ndarray  # (4, 4) camera pose in world
 
+    @classmethod
+    def FromIntrinsics(cls, intrinsics, X_WC: np.ndarray) -> "CameraModel":
+        """From a Drake CameraInfo (width(), focal_x(), center_x(), ...) and
+        the camera's (4, 4) pose in world."""
+        k = intrinsics
+        return cls(
+            width=k.width(),
+            height=k.height(),
+            fx=k.focal_x(),
+            fy=k.focal_y(),
+            cx=k.center_x(),
+            cy=k.center_y(),
+            X_WC=np.asarray(X_WC),
+        )
+
     def to_json(self) -> dict:
         d = dc.asdict(self)
         d["X_WC"] = np.asarray(self.X_WC).tolist()

@@ -13,28 +13,22 @@ gravity and the table break that symmetry.
 
 import numpy as np
 import torch
+from fabric_imitation.learning.demo_io import CameraModel
 from fabric_imitation.learning.state import corner_indices
 
 
 class PinholeCamera:
-    """Projection and back-projection for one camera (intrinsics, X_WC)."""
+    """Projection and back-projection, in torch, for the camera `model`
+    (intrinsics and X_WC)."""
 
-    def __init__(
-        self,
-        *,
-        width: int,
-        height: int,
-        fx: float,
-        fy: float,
-        cx: float,
-        cy: float,
-        X_WC: np.ndarray,
-    ):
-        self.width, self.height = int(width), int(height)
+    def __init__(self, model: CameraModel):
+        self.model = model
+        self.width, self.height = int(model.width), int(model.height)
+        fx, fy, cx, cy = model.fx, model.fy, model.cx, model.cy
         self.K = torch.tensor(
             [[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]], dtype=torch.float32
         )
-        X = torch.as_tensor(np.asarray(X_WC), dtype=torch.float32)
+        X = torch.as_tensor(np.asarray(model.X_WC), dtype=torch.float32)
         self.R_WC, self.p_WC = X[:3, :3], X[:3, 3]
         v, u = torch.meshgrid(
             torch.arange(self.height, dtype=torch.float32),
@@ -43,18 +37,6 @@ class PinholeCamera:
         )
         rays_C = torch.stack([(u - cx) / fx, (v - cy) / fy, torch.ones_like(u)], -1)
         self.rays_W = rays_C @ self.R_WC.T  # (H, W, 3): p_W = p_WC + depth * ray
-
-    @classmethod
-    def from_model(cls, camera) -> "PinholeCamera":
-        return cls(
-            width=camera.width,
-            height=camera.height,
-            fx=camera.fx,
-            fy=camera.fy,
-            cx=camera.cx,
-            cy=camera.cy,
-            X_WC=camera.X_WC,
-        )
 
     def height_map(self, depth: torch.Tensor) -> torch.Tensor:
         """World z of each pixel's surface point, (..., H, W); 0 where no return."""

@@ -289,7 +289,7 @@ def load_priors(
     if any(v["mean"] is None or v["std"] is None for v in blob["norms"].values()):
         raise InputError(f"priors {tensors_file} lack a normaliser's tensors")
     norms = {k: Normalizer(v["mean"], v["std"]) for k, v in blob["norms"].items()}
-    priors = build_priors(config, PinholeCamera.from_model(stored), norms)
+    priors = build_priors(config, PinholeCamera(stored), norms)
     try:
         for name in ("f_R", "f_D", "f_I"):
             getattr(priors, name).load_state_dict(blob[name])

@@ -270,17 +270,37 @@ def rule_violations(
                 out["direction"] = out["direction"] | (
                     on_top & applies & bad_direction(a, g - far, cos_hidden)
                 )
+    grippers = torch.stack([s1n, s2n], -2)
+    out["workspace"] = _outside_workspace(S, A, S_next, grippers, ctx)
+    if ctx.object_size is not None:
+        half = torch.as_tensor(ctx.object_size, dtype=S.dtype) / 2
+        margin = config.object_margin
+        inside = (
+            (grippers[..., 0].abs() < half[0] + margin)
+            & (grippers[..., 1].abs() < half[1] + margin)
+            & (grippers[..., 2] < 2 * half[2] + margin)
+        )
+        out["object"] = inside.any(-1)
+    else:
+        out["object"] = torch.zeros_like(out["bounds"])
+    return out
+
+
+def _outside_workspace(S, A, S_next, grippers, ctx: SafetyContext) -> torch.Tensor:
+    """Rule 3: any point (the state's keypoints with the grasped corners
+    moved, or the predicted state and the gripper targets) outside the
+    workspace box, or a gripper below the table top."""
+    idx = corner_indices(S.shape[-2])
     lo = torch.as_tensor(ctx.workspace_lower, dtype=S.dtype)
     hi = torch.as_tensor(ctx.workspace_upper, dtype=S.dtype)
-    grippers = torch.stack([s1n, s2n], -2)
     if S_next is None:
         moved = (
             S.clone()
             if S.shape[:-2] == A.shape[:-1]
             else S.expand(*A.shape[:-1], *S.shape[-2:]).clone()
         )
-        moved[..., idx["s1"], :] = s1n
-        moved[..., idx["s2"], :] = s2n
+        moved[..., idx["s1"], :] = grippers[..., 0, :]
+        moved[..., idx["s2"], :] = grippers[..., 1, :]
         points = moved  # the grasped corners are the gripper targets
     else:
         # The predicted state and the gripper targets themselves.
@@ -296,20 +316,7 @@ def rule_violations(
         points = points @ R.T + torch.tensor([x, y, 0.0], dtype=points.dtype)
     outside = ((points < lo) | (points > hi)).any(-1).any(-1)
     # Grippers never go below the table top.
-    outside = outside | (grippers[..., 2] < 0.0).any(-1)
-    out["workspace"] = outside
-    if ctx.object_size is not None:
-        half = torch.as_tensor(ctx.object_size, dtype=S.dtype) / 2
-        margin = config.object_margin
-        inside = (
-            (grippers[..., 0].abs() < half[0] + margin)
-            & (grippers[..., 1].abs() < half[1] + margin)
-            & (grippers[..., 2] < 2 * half[2] + margin)
-        )
-        out["object"] = inside.any(-1)
-    else:
-        out["object"] = torch.zeros_like(out["bounds"])
-    return out
+    return outside | (grippers[..., 2] < 0.0).any(-1)
 
 
 def _dropped(p: torch.Tensor, fraction: float, ctx: SafetyContext) -> torch.Tensor:

@@ -269,7 +269,7 @@ def train_priors(
     if len(ds) < 2:
         raise InputError(f"dataset {data} has too few transitions ({len(ds)})")
     camera_model = CameraModel.from_json(ds.camera)
-    camera = PinholeCamera.from_model(camera_model)
+    camera = PinholeCamera(camera_model)
 
     def log(msg: str) -> None:
         if progress:

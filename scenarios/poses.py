@@ -27,3 +27,9 @@ def GraspCorners(scenario: Scenario) -> dict[str, np.ndarray]:
 def ClothPose(scenario: Scenario) -> RigidTransform:
     """X_WC of the cloth frame C (the slab's centre) at rest on the table."""
     return PoseOnTable(scenario.cloth.pose, scenario.cloth.thickness / 2)
+
+
+def ObjectPlanarPose(scenario: Scenario) -> np.ndarray:
+    """[x, y, yaw (rad)] of the task object on the table."""
+    pose = scenario.object.pose
+    return np.array([pose[0], pose[1], yaw_rad(pose)])

@@ -12,8 +12,8 @@ import math
 import numpy as np
 from fabric_imitation.learning.errors import InputError
 from fabric_imitation.learning.state import object_to_world
-from fabric_imitation.scenarios.poses import GraspCorners
-from fabric_imitation.scenarios.schema import Scenario, yaw_rad
+from fabric_imitation.scenarios.poses import GraspCorners, ObjectPlanarPose
+from fabric_imitation.scenarios.schema import Scenario
 from fabric_imitation.systems.gripper_contact import GraspCapsules
 
 
@@ -26,15 +26,10 @@ class DemoPlan:
     waypoints_W: list[np.ndarray]
 
 
-def _object_pose(scenario: Scenario) -> np.ndarray:
-    pose = scenario.object.pose
-    return np.array([pose[0], pose[1], yaw_rad(pose)])
-
-
 def _pair(scenario: Scenario, half_width: float, y: float, z: float) -> np.ndarray:
     """World positions (2, 3) of left/right grippers at object-frame (-+w, y, z)."""
     p_O = np.array([[-half_width, y, z], [half_width, y, z]])
-    return object_to_world(p_O, _object_pose(scenario))
+    return object_to_world(p_O, ObjectPlanarPose(scenario))
 
 
 def _cover_waypoints(scenario: Scenario, start: np.ndarray) -> list[np.ndarray]:

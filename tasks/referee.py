@@ -112,24 +112,25 @@ def TaskReferee(task: str) -> RefereeRules:
     return REFEREES[task]
 
 
-def ObjectSafetyContext(
-    scenario: Scenario, *, estimated: bool = False
-) -> SafetyContext:
-    """Safety rules for states in the object frame of `scenario`; `estimated`:
-    the states are the camera's estimates (the controller's view), so rule 2
-    allows for far corners hidden under a hanging side (SafetyContext)."""
+def TaskSafetyContext(scenario: Scenario, *, estimated: bool = False) -> SafetyContext:
+    """Safety rules for states in the task's frame: the object frame of
+    `scenario`, or the world in a scene without an object (the prior scene's
+    data collection). `estimated`: the states are the camera's estimates
+    (the controller's view), so rule 2 allows for far corners hidden under a
+    hanging side (SafetyContext)."""
+    has_object = scenario.object.kind != "none"
     lower = np.array(scenario.workspace.lower, float)
     lower[2] = max(lower[2], -scenario.cloth.thickness)
     return SafetyContext(
         edge_length=scenario.cloth.size[0],
         workspace_lower=lower,
         workspace_upper=np.array(scenario.workspace.upper, float),
-        object_size=(
-            np.array(scenario.object.size, float)
-            if scenario.object.kind != "none"
+        object_size=np.array(scenario.object.size, float) if has_object else None,
+        frame_pose=(
+            np.array(PlanarPose.FromDegrees(scenario.object.pose))
+            if has_object
             else None
         ),
-        frame_pose=np.array(PlanarPose.FromDegrees(scenario.object.pose)),
         far_corners_may_hang=estimated and scenario.safety.hidden_corners_hang,
         far_corners_may_drape=estimated and scenario.safety.hidden_corners_drape,
         side_length=scenario.cloth.size[1],
@@ -152,7 +153,7 @@ def JudgeTransitions(
     after, all in the object frame) breaks it; key "any" for any rule.
     `frame_pose`: the object's pose [x, y, yaw_rad] (default: the
     scenario's)."""
-    ctx = ObjectSafetyContext(scenario)
+    ctx = TaskSafetyContext(scenario)
     if frame_pose is not None:
         ctx = dc.replace(ctx, frame_pose=np.asarray(frame_pose, float))
     n = len(action_O)

@@ -5,7 +5,8 @@ import dataclasses as dc
 
 import numpy as np
 from fabric_imitation.learning.state import world_to_object
-from fabric_imitation.scenarios.schema import Scenario, yaw_rad
+from fabric_imitation.scenarios.poses import ObjectPlanarPose
+from fabric_imitation.scenarios.schema import Scenario
 from fabric_imitation.systems.cloth_mesh import TopTriangles
 
 
@@ -13,11 +14,6 @@ from fabric_imitation.systems.cloth_mesh import TopTriangles
 class SuccessReport:
     success: bool
     details: dict
-
-
-def _object_pose(scenario: Scenario) -> np.ndarray:
-    pose = scenario.object.pose
-    return np.array([pose[0], pose[1], yaw_rad(pose)])
 
 
 def _covered(points_xy: np.ndarray, tri_xy: np.ndarray) -> np.ndarray:
@@ -45,7 +41,7 @@ def BoxCoverSuccess(
     is over it."""
     size = np.array(scenario.object.size)
     tol = scenario.success.rest_tolerance
-    p_O = world_to_object(positions_W, _object_pose(scenario))
+    p_O = world_to_object(positions_W, ObjectPlanarPose(scenario))
     tris = TopTriangles(top_grid)
     z = p_O[tris, 2].mean(axis=1)
     resting = (z > size[2] - 0.5 * tol) & (z < size[2] + tol)
@@ -71,7 +67,7 @@ def HangSuccess(scenario: Scenario, positions_W: np.ndarray) -> SuccessReport:
     size = np.array(scenario.object.size)
     tol = scenario.success.rest_tolerance
     thickness = scenario.cloth.thickness
-    p_O = world_to_object(positions_W, _object_pose(scenario))
+    p_O = world_to_object(positions_W, ObjectPlanarPose(scenario))
     x, y, z = p_O[:, 0], p_O[:, 1], p_O[:, 2]
     on_edge = (
         (np.abs(x) <= size[0] / 2)

@@ -229,7 +229,8 @@ def test_the_cloth_start_is_drawn_from_the_seed_within_its_band():
 
 
 def test_an_unknown_on_violation_rule_is_one_line_and_exit_2(capsys):
-    from fabric_imitation.diagrams import cli, referee
+    from fabric_imitation.tasks import referee
+    from fabric_imitation.tools import cli
     from fabric_imitation.tools.cli import main
 
     assert cli.ON_VIOLATION == referee.ON_VIOLATION

@@ -8,7 +8,6 @@ import types
 import numpy as np
 import pytest
 import torch
-from fabric_imitation.diagrams.imitation import ObjectSafetyContext
 from fabric_imitation.learning.mpc import MpcResult
 from fabric_imitation.learning.safety import SafetyContext, rule_violations
 from fabric_imitation.learning.state import PlanarPose, object_to_world
@@ -20,6 +19,7 @@ from fabric_imitation.systems.imitation import (
 )
 from fabric_imitation.systems.station_parts import ReleaseLatch
 from fabric_imitation.systems.targets import GripperTargetIntegrator
+from fabric_imitation.tasks.referee import TaskSafetyContext
 from fabric_imitation.tools.episode import EpisodeRun, EpisodeTransitions, ScoreEpisode
 from pydrake.math import RigidTransform, RotationMatrix
 from pydrake.systems.analysis import Simulator
@@ -150,8 +150,8 @@ def test_rule_2_for_estimates_allows_for_hidden_hanging_corners(box):
     S[[4, 6], 2] = 0.25  # at its height
     a = torch.tensor([0.0, 0.01, -0.02, 0.0, 0.01, -0.02], dtype=torch.float64)
     t = torch.as_tensor(S)
-    plain = ObjectSafetyContext(box)
-    estimated = ObjectSafetyContext(box, estimated=True)
+    plain = TaskSafetyContext(box)
+    estimated = TaskSafetyContext(box, estimated=True)
     assert not bool(rule_violations(t, a, box.safety, plain)["direction"])
     assert bool(rule_violations(t, a, box.safety, estimated)["direction"])
     # Lifting stays allowed.
@@ -165,8 +165,8 @@ def test_only_the_controllers_rule_2_keeps_the_estimate_margin(box):
     import dataclasses as dc
 
     scenario = dc.replace(box, safety=dc.replace(box.safety, estimate_margin_deg=7.0))
-    assert ObjectSafetyContext(scenario).direction_margin_deg == 0.0
-    estimated = ObjectSafetyContext(scenario, estimated=True)
+    assert TaskSafetyContext(scenario).direction_margin_deg == 0.0
+    estimated = TaskSafetyContext(scenario, estimated=True)
     assert estimated.direction_margin_deg == 7.0
 
 

@@ -441,12 +441,9 @@ def BenchMpc(
     training f_A, first solve). `threads`: torch threads (default: what the
     main job picks, `TorchThreads()`)."""
     import torch
-    from fabric_imitation.diagrams.imitation import (
-        DefaultDemoDir,
-        ObjectSafetyContext,
-        PrepareImitation,
-    )
+    from fabric_imitation.diagrams.imitation import DefaultDemoDir, PrepareImitation
     from fabric_imitation.learning.mpc import Mpc
+    from fabric_imitation.tasks.referee import TaskSafetyContext
     from fabric_imitation.tools.episode import TorchThreads
 
     torch.set_num_threads(threads or TorchThreads())
@@ -463,7 +460,7 @@ def BenchMpc(
         dynamics=prepared.priors,
         demo=prepared.model,
         safety=scenario.safety,
-        safety_ctx=ObjectSafetyContext(scenario, estimated=True),
+        safety_ctx=TaskSafetyContext(scenario, estimated=True),
         config=config,
     )
     first = mpc.solve(torch.as_tensor(states[0], dtype=torch.float32))

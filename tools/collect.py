@@ -6,6 +6,7 @@ data are the same for any worker count or executor, and a resumed run
 recomputes exactly the episodes that were not yet stored.
 """
 
+import contextlib
 import dataclasses as dc
 import json
 import subprocess
@@ -23,6 +24,7 @@ from fabric_imitation.diagrams.station import (
     StationPorts,
 )
 from fabric_imitation.learning.dataset import (
+    FIELDS,
     Consolidate,
     EncodeDepth,
     ReadInfo,
@@ -30,12 +32,14 @@ from fabric_imitation.learning.dataset import (
     WriteShard,
 )
 from fabric_imitation.learning.errors import InputError
-from fabric_imitation.learning.safety import SafetyContext, valid_actions
+from fabric_imitation.learning.safety import valid_actions
 from fabric_imitation.learning.state import NUM_KEYPOINTS, SIDES
 from fabric_imitation.scenarios.loader import DumpScenario, LoadScenario
 from fabric_imitation.scenarios.poses import GraspCorners
 from fabric_imitation.scenarios.schema import Scenario
 from fabric_imitation.systems.targets import GripperTargetIntegrator
+from fabric_imitation.tasks.referee import TaskSafetyContext
+from fabric_imitation.tools.executors import EXECUTORS, RunJobs
 from pydrake.systems.analysis import Simulator
 from pydrake.systems.framework import DiagramBuilder
 
@@ -56,17 +60,6 @@ def CodeVersion() -> str:
     from importlib.metadata import version
 
     return version("fabric-imitation")
-
-
-def PriorSafetyContext(scenario: Scenario) -> SafetyContext:
-    """Safety rules in the world frame of the prior scene (no object)."""
-    lower = np.array(scenario.workspace.lower, dtype=float)
-    lower[2] = max(lower[2], -scenario.cloth.thickness)
-    return SafetyContext(
-        edge_length=scenario.cloth.size[0],
-        workspace_lower=lower,
-        workspace_upper=np.array(scenario.workspace.upper, float),
-    )
 
 
 class EpisodeCollector:
@@ -110,7 +103,7 @@ class EpisodeCollector:
         self.default_context = self.context.Clone()
         self.station_context = station.GetMyContextFromRoot(self.context)
         self.action_port = self.diagram.GetInputPort("action")
-        self.safety_ctx = PriorSafetyContext(scenario)
+        self.safety_ctx = TaskSafetyContext(scenario)
 
     def _observe(self):
         def port(name):
@@ -150,23 +143,7 @@ class EpisodeCollector:
         self.context.SetTimeStateAndParametersFrom(self.default_context)
         self.simulator.Initialize()
         dt = self.scenario.motion.step_seconds
-        rows: dict[str, list] = {
-            k: []
-            for k in (
-                "mask",
-                "mask_next",
-                "depth",
-                "depth_next",
-                "keypoints",
-                "keypoints_next",
-                "action",
-                "grippers",
-                "grippers_next",
-                "episode",
-                "step",
-                "rejected",
-            )
-        }
+        rows: dict[str, list] = {k: [] for k in FIELDS}
         flip_at = warmup + cfg.episode_length // 2
         flip = rng.random() < cfg.reverse_probability
         obs = self._observe()
@@ -241,69 +218,6 @@ class _Progress:
             self.bar.update(n)
 
 
-def _run_local(scenario_yaml, path, seed, episodes, workers, progress) -> None:
-    jobs = ((str(path), e, seed) for e in episodes)
-    if workers == 1:
-        _worker_init(scenario_yaml)
-        for job in jobs:
-            _, n = _worker_episode(job)
-            if progress(n):
-                return
-        return
-    import multiprocessing as mp
-
-    ctx = mp.get_context("spawn")
-    with ctx.Pool(workers, initializer=_worker_init, initargs=(scenario_yaml,)) as pool:
-        for _, n in pool.imap(_worker_episode, jobs):
-            if progress(n):
-                pool.terminate()
-                return
-
-
-def StartRay(workers: int):
-    """The `ray` module, started locally with `workers` CPUs unless a Ray is
-    already connected; a one-line InputError when Ray is not installed."""
-    try:
-        import ray
-    except ImportError:
-        raise InputError(
-            "--executor ray needs the optional extra: "
-            "pip install 'fabric-imitation[ray]'"
-        ) from None
-    if not ray.is_initialized():
-        ray.init(num_cpus=workers, include_dashboard=False, log_to_driver=False)
-    return ray
-
-
-def _run_ray(scenario_yaml, path, seed, episodes, workers, progress) -> None:
-    ray = StartRay(workers)
-    from ray.util import ActorPool
-
-    @ray.remote(num_cpus=1)
-    class Worker:
-        def __init__(self, text):
-            _worker_init(text)
-
-        def run(self, job):
-            return _worker_episode(job)
-
-    pool = ActorPool([Worker.remote(scenario_yaml) for _ in range(workers)])
-    pending = 0
-    it = iter(episodes)
-    for _ in range(2 * workers):
-        pool.submit(lambda a, e: a.run.remote((str(path), e, seed)), next(it))
-        pending += 1
-    while pending:
-        _, n = pool.get_next()
-        pending -= 1
-        if progress(n):
-            break
-        pool.submit(lambda a, e: a.run.remote((str(path), e, seed)), next(it))
-        pending += 1
-    while pool.has_next():
-        pool.get_next()
-
-
 def Collect(
     *,
     scenario: Scenario,
@@ -324,7 +238,7 @@ def Collect(
         raise InputError(f"--transitions must be positive, got {transitions}")
     if workers < 1:
         raise InputError(f"--workers must be at least 1, got {workers}")
-    if executor not in ("local", "ray"):
+    if executor not in EXECUTORS:
         raise InputError(f"unknown executor {executor!r}; use local or ray")
     seed = scenario.random_seed if seed is None else seed
     out = Path(out)
@@ -363,9 +277,20 @@ def Collect(
         return tracker.done >= transitions
 
     if tracker.done < transitions:
-        episodes = _episodes_to_do(start, set(shards))
-        runner = _run_local if executor == "local" else _run_ray
-        runner(scenario_yaml, out, seed, episodes, workers, progress)
+        jobs = ((str(out), e, seed) for e in _episodes_to_do(start, set(shards)))
+        with contextlib.closing(
+            RunJobs(
+                _worker_episode,
+                jobs,
+                workers=workers,
+                executor=executor,
+                init=_worker_init,
+                init_args=(scenario_yaml,),
+            )
+        ) as results:
+            for _, n in results:
+                if progress(n):
+                    break
     if bar is not None:
         bar.close()
     Consolidate(out, target=transitions, metadata=metadata)

@@ -19,15 +19,8 @@ from fabric_imitation.tools.simulation import OpenLoopRun, RunResult, WriteOutpu
 
 
 def StationCameraModel(station: ClothStation) -> CameraModel:
-    info = station.camera_info
-    return CameraModel(
-        width=info.width(),
-        height=info.height(),
-        fx=info.focal_x(),
-        fy=info.focal_y(),
-        cx=info.center_x(),
-        cy=info.center_y(),
-        X_WC=station.X_WCamera.GetAsMatrix4(),
+    return CameraModel.FromIntrinsics(
+        station.camera_info, station.X_WCamera.GetAsMatrix4()
     )
 
 

@@ -48,8 +48,8 @@ from fabric_imitation.systems.imitation import (
 from fabric_imitation.systems.referee import HALT_COLLISION, HALT_RULE_BREAK
 from fabric_imitation.tasks.referee import (
     JudgeTransitions,
-    ObjectSafetyContext,
     TaskReferee,
+    TaskSafetyContext,
 )
 from fabric_imitation.tasks.success import TaskSuccess
 from fabric_imitation.tools.simulation import WriteOutputs
@@ -322,7 +322,7 @@ def ScoreEpisode(
         return round(float(np.percentile(solve_ms, q)), 1) if len(solve_ms) else None
 
     pose = PlanarPose(*logs["object_pose"][-1])
-    safety_ctx = dc.replace(ObjectSafetyContext(scenario), frame_pose=np.array(pose))
+    safety_ctx = dc.replace(TaskSafetyContext(scenario), frame_pose=np.array(pose))
     tr = EpisodeTransitions(run.times, logs)
     estimated = CountRuleBreaks(
         tr.estimated_before, tr.action, tr.estimated_after, scenario, safety_ctx
@@ -382,7 +382,7 @@ def ScoreEpisode(
         final_O = world_to_object(final.keypoints_W, pose)
         final_iou = raster_iou(final_O[:, :2], demo_final[:, :2])
         chamfer = _chamfer(
-            PinholeCamera.from_model(CameraModelFromConfig(scenario.camera)),
+            PinholeCamera(CameraModelFromConfig(scenario.camera)),
             final,
             demo,
             pose,

@@ -17,6 +17,7 @@ from pathlib import Path
 
 import numpy as np
 from fabric_imitation.learning.errors import InputError
+from fabric_imitation.tools.executors import EXECUTORS, RunJobs
 
 # Method -> (controller of MakeImitationDiagram, changes to the scenario's
 # MPC settings).
@@ -328,27 +329,6 @@ def ScriptedTrial(scenario, *, on_violation: str = "stop") -> dict:
     return summary
 
 
-def _RayTrials(jobs: list[dict], workers: int, prepared: dict):
-    """Runs the trials on Ray actors (each learns nothing: it gets what was
-    learned from the demos once); yields rows as they finish."""
-    from fabric_imitation.tools.collect import StartRay
-
-    ray = StartRay(workers)
-    from ray.util import ActorPool
-
-    @ray.remote(num_cpus=1)
-    class TrialWorker:
-        def __init__(self, learned):
-            _set_prepared(learned)
-
-        def run(self, job):
-            return _run_trial(job)
-
-    learned = ray.put(prepared)
-    pool = ActorPool([TrialWorker.remote(learned) for _ in range(workers)])
-    yield from pool.map_unordered(lambda actor, job: actor.run.remote(job), jobs)
-
-
 def _aggregate(rows: list[dict]) -> dict:
     from fabric_imitation.learning.safety import RULES
 
@@ -499,37 +479,21 @@ def Evaluate(
     gripper-object contact on the true cloth (tasks/referee.py); "count"
     only counts. Trials run in worker processes that are replaced after
     `worker_trials` trials each (0: with one worker, in this process)."""
-    from fabric_imitation.tasks.referee import ON_VIOLATION
-
-    if on_violation not in ON_VIOLATION:
-        raise InputError(
-            f"unknown --on-violation {on_violation!r}; use {' or '.join(ON_VIOLATION)}"
-        )
-    if worker_trials < 0:
-        raise InputError(f"worker_trials must be >= 0, got {worker_trials}")
-    if sampling_seed < 0:
-        raise InputError(f"--sampling-seed must be >= 0, got {sampling_seed}")
-    if executor not in ("local", "ray"):
-        raise InputError(f"unknown executor {executor!r}; use local or ray")
-    unknown = [m for m in methods if m not in METHODS]
-    if unknown:
-        raise InputError(f"unknown method(s) {unknown}; known: {', '.join(METHODS)}")
+    _CheckEvaluateArgs(
+        methods=methods,
+        executor=executor,
+        sampling_seed=sampling_seed,
+        on_violation=on_violation,
+        worker_trials=worker_trials,
+    )
     out = Path(out)
-    done, resumed = {}, []
-    if out.exists():
-        for line in out.read_text().splitlines():
-            try:
-                row = json.loads(line)
-            except json.JSONDecodeError:
-                continue  # a line cut by a kill: the trial is run again
-            if (
-                row.get("protocol", "transformation") == protocol
-                and row.get("sampling_seed", 0) == sampling_seed
-                and row.get("on_violation") == on_violation
-                and row.get("pose_seed") == seed
-            ):
-                resumed.append(row)
-                done[(row["scenario"], row["method"], row["trial"])] = row
+    run = dict(
+        protocol=protocol,
+        sampling_seed=sampling_seed,
+        on_violation=on_violation,
+        pose_seed=seed,
+    )
+    resumed = _ResumedTrials(out, run)
     pose_lists = {
         name: ProtocolPoses(
             name, protocol, trials=trials, seed=seed, scenario_text=scenario_text
@@ -546,100 +510,59 @@ def Evaluate(
         )
         for name in scenario_names
     }
-    for row in resumed:
-        if row["scenario"] in fingerprints and (
-            row.get("fingerprint") != fingerprints[row["scenario"]]
-            or row.get("scenario_text", "") != scenario_text
-        ):
-            raise InputError(
-                f"{out} holds trials of {row['scenario']} run with other code, "
-                "priors, baselines, demo or scenario settings (their fingerprint "
-                "or --scenario-text differs); give another --out"
-            )
-    jobs = []
-    for name, poses in pose_lists.items():
-        for method in methods:
-            for i, pose in enumerate(poses):
-                if (name, method, i) not in done:
-                    jobs.append(
-                        {
-                            "scenario": name,
-                            "method": method,
-                            "trial": i,
-                            "pose": pose,
-                            "cloth_start": cloth_starts[name][i],
-                            "pose_seed": seed,
-                            "on_violation": on_violation,
-                            "fingerprint": fingerprints[name],
-                            "demo": str(demo) if demo else None,
-                            "priors": str(priors) if priors else None,
-                            "scenario_text": scenario_text,
-                            "protocol": protocol,
-                            "sampling_seed": sampling_seed,
-                            "baselines": any(m in BASELINE_METHODS for m in methods),
-                        }
-                    )
-    # Learn from each scenario's demo once (f_R on its frames, f_A), here,
-    # and hand the result to every worker.
-    prepared, prepare_seconds = {}, {}
-    for job in jobs:
-        if job["method"] != "scripted" and job["scenario"] not in prepared:
-            t0 = time.perf_counter()
-            prepared[job["scenario"]] = _prepare(job)
-            prepare_seconds[job["scenario"]] = round(time.perf_counter() - t0, 1)
-    bar = None
-    if progress:
-        from tqdm import tqdm
-
-        bar = tqdm(total=len(jobs), desc="evaluate", unit="trial", file=sys.stderr)
-    out.parent.mkdir(parents=True, exist_ok=True)
-
-    def store(row):
-        with open(out, "a") as f:
-            f.write(json.dumps(row) + "\n")
-            f.flush()
-            os.fsync(f.fileno())
-        done[(row["scenario"], row["method"], row["trial"])] = row
-        if bar is not None:
-            bar.update()
-            # Running success per scenario and method, e.g. "box/ours 4/5".
-            cells = {}
-            for (scenario, method, _), r in done.items():
-                ok, n = cells.get(f"{scenario}/{method}", (0, 0))
-                cells[f"{scenario}/{method}"] = (ok + bool(r["success"]), n + 1)
-            bar.set_postfix_str(
-                " ".join(f"{k} {ok}/{n}" for k, (ok, n) in sorted(cells.items()))
-            )
-
-    if executor == "ray":
-        for row in _RayTrials(jobs, workers, prepared):
-            store(row)
-    elif workers == 1 and worker_trials == 0:
-        _set_prepared(prepared)
-        for job in jobs:
-            store(_run_trial(job))
-    else:
-        import multiprocessing as mp
-
-        with mp.get_context("spawn").Pool(
-            workers,
-            initializer=_set_prepared,
-            initargs=(prepared,),
-            maxtasksperchild=worker_trials or None,
-        ) as pool:
-            for row in pool.imap_unordered(_run_trial, jobs):
-                store(row)
-    if bar is not None:
-        bar.close()
+    _CheckResumable(resumed.values(), fingerprints, scenario_text, out)
+    common = {
+        "demo": str(demo) if demo else None,
+        "priors": str(priors) if priors else None,
+        "scenario_text": scenario_text,
+        "protocol": protocol,
+        "sampling_seed": sampling_seed,
+        "baselines": any(m in BASELINE_METHODS for m in methods),
+    }
+    jobs = [
+        {
+            "scenario": name,
+            "method": method,
+            "trial": i,
+            "pose": pose,
+            "cloth_start": cloth_starts[name][i],
+            "pose_seed": seed,
+            "on_violation": on_violation,
+            "fingerprint": fingerprints[name],
+            **common,
+        }
+        for name, poses in pose_lists.items()
+        for method in methods
+        for i, pose in enumerate(poses)
+        if (name, method, i) not in resumed
+    ]
+    prepared, prepare_seconds = _PrepareDemos(jobs)
+    store = _TrialStore(out, dict(resumed), total=len(jobs) if progress else None)
+    # What was learned from the demos goes to every worker once.
+    for row in RunJobs(
+        _run_trial,
+        jobs,
+        workers=workers,
+        executor=executor,
+        init=_set_prepared,
+        init_args=(prepared,),
+        tasks_per_worker=worker_trials,
+        ordered=False,
+    ):
+        store.add(row)
+    store.close()
+    cells = {
+        (name, method): [
+            r
+            for (s, m, _), r in sorted(store.done.items())
+            if s == name and m == method and r["trial"] < trials
+        ]
+        for name in scenario_names
+        for method in methods
+    }
     table = {}
-    for name in scenario_names:
-        for method in methods:
-            rows = [
-                r
-                for (s, m, _), r in sorted(done.items())
-                if s == name and m == method and r["trial"] < trials
-            ]
-            table.setdefault(name, {})[method] = _aggregate(rows)
+    for (name, method), rows in cells.items():
+        table.setdefault(name, {})[method] = _aggregate(rows)
     summary = {
         "protocol": protocol,
         "protocol_band": {
@@ -656,36 +579,130 @@ def Evaluate(
         "prepare_seconds": prepare_seconds,
         "results": table,
         "failures": [
-            {
-                k: r.get(k)
-                for k in (
-                    "scenario",
-                    "method",
-                    "trial",
-                    "pose",
-                    "termination",
-                    "success_details",
-                    "error",
-                )
-            }
-            for r in done.values()
+            {k: r.get(k) for k in FAILURE_FIELDS}
+            for r in store.done.values()
             if not r["success"]
         ],
     }
     Path(str(out) + ".summary.json").write_text(json.dumps(summary, indent=1))
     _plot(table, Path(str(out) + ".png"))
-    cells = {
-        (name, method): [
-            r
-            for (s, m, _), r in sorted(done.items())
-            if s == name and m == method and r["trial"] < trials
-        ]
-        for name in scenario_names
-        for method in methods
-    }
     _plot_curves(cells, Path(str(out) + ".curves.png"))
     Path(str(out) + ".md").write_text(ResultsMarkdown(summary))
     return summary
+
+
+# What the summary lists of each failed trial.
+FAILURE_FIELDS = (
+    "scenario",
+    "method",
+    "trial",
+    "pose",
+    "termination",
+    "success_details",
+    "error",
+)
+
+
+def _CheckEvaluateArgs(
+    *, methods, executor, sampling_seed, on_violation, worker_trials
+) -> None:
+    from fabric_imitation.tasks.referee import ON_VIOLATION
+
+    if on_violation not in ON_VIOLATION:
+        raise InputError(
+            f"unknown --on-violation {on_violation!r}; use {' or '.join(ON_VIOLATION)}"
+        )
+    if worker_trials < 0:
+        raise InputError(f"worker_trials must be >= 0, got {worker_trials}")
+    if sampling_seed < 0:
+        raise InputError(f"--sampling-seed must be >= 0, got {sampling_seed}")
+    if executor not in EXECUTORS:
+        raise InputError(f"unknown executor {executor!r}; use local or ray")
+    unknown = [m for m in methods if m not in METHODS]
+    if unknown:
+        raise InputError(f"unknown method(s) {unknown}; known: {', '.join(METHODS)}")
+
+
+def _ResumedTrials(out: Path, run: dict) -> dict:
+    """(scenario, method, trial) -> the row, for the trial lines of `out` of
+    this run (protocol, sampling seed, rule, pose seed); a line cut by a
+    kill is skipped, so its trial runs again."""
+    done = {}
+    if not out.exists():
+        return done
+    for line in out.read_text().splitlines():
+        try:
+            row = json.loads(line)
+        except json.JSONDecodeError:
+            continue
+        if (
+            row.get("protocol", "transformation") == run["protocol"]
+            and row.get("sampling_seed", 0) == run["sampling_seed"]
+            and row.get("on_violation") == run["on_violation"]
+            and row.get("pose_seed") == run["pose_seed"]
+        ):
+            done[(row["scenario"], row["method"], row["trial"])] = row
+    return done
+
+
+def _CheckResumable(rows, fingerprints: dict, scenario_text: str, out: Path) -> None:
+    for row in rows:
+        if row["scenario"] in fingerprints and (
+            row.get("fingerprint") != fingerprints[row["scenario"]]
+            or row.get("scenario_text", "") != scenario_text
+        ):
+            raise InputError(
+                f"{out} holds trials of {row['scenario']} run with other code, "
+                "priors, baselines, demo or scenario settings (their fingerprint "
+                "or --scenario-text differs); give another --out"
+            )
+
+
+def _PrepareDemos(jobs: list[dict]) -> tuple[dict, dict]:
+    """Learns from each scenario's demo once (f_R on its frames, f_A), here:
+    scenario -> what was learned, and the seconds it took."""
+    prepared, seconds = {}, {}
+    for job in jobs:
+        if job["method"] != "scripted" and job["scenario"] not in prepared:
+            t0 = time.perf_counter()
+            prepared[job["scenario"]] = _prepare(job)
+            seconds[job["scenario"]] = round(time.perf_counter() - t0, 1)
+    return prepared, seconds
+
+
+class _TrialStore:
+    """Appends each finished trial to `out` (flushed to disk: a sweep killed
+    at any moment resumes), and shows progress with the running success of
+    each scenario and method, e.g. "box/ours 4/5" (`total` None: quiet)."""
+
+    def __init__(self, out: Path, done: dict, total: int | None):
+        self.out, self.done = out, done
+        self.bar = None
+        if total is not None:
+            from tqdm import tqdm
+
+            self.bar = tqdm(total=total, desc="evaluate", unit="trial", file=sys.stderr)
+        out.parent.mkdir(parents=True, exist_ok=True)
+
+    def add(self, row: dict) -> None:
+        with open(self.out, "a") as f:
+            f.write(json.dumps(row) + "\n")
+            f.flush()
+            os.fsync(f.fileno())
+        self.done[(row["scenario"], row["method"], row["trial"])] = row
+        if self.bar is not None:
+            self.bar.update()
+            cells = {}
+            for (scenario, method, _), r in self.done.items():
+                ok, n = cells.get(f"{scenario}/{method}", (0, 0))
+                cells[f"{scenario}/{method}"] = (ok + bool(r["success"]), n + 1)
+            self.bar.set_postfix_str(
+                " ".join(f"{k} {ok}/{n}" for k, (ok, n) in sorted(cells.items()))
+            )
+
+    def close(self) -> None:
+        if self.bar is not None:
+            self.bar.close()
 
 
 def ResultsMarkdown(summary: dict) -> str:
