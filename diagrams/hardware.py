@@ -77,7 +77,7 @@ HAND_FORCE = 40.0  # [N] grip force limit sent with every hand command
 # Messages are encoded and decoded in C++ (use_cpp_serializer) where a C++
 # system consumes them. Never subscribe with a Python handler on the
 # DrakeLcm (`lcm.Subscribe(channel, handler)`) while a simulation runs:
-# pydrake 1.58 calls it without the GIL and crashes (segfault, measured).
+# pydrake 1.58 calls it without the GIL and crashes (segfault).
 
 
 def HandChannel(command_channel: str) -> str:
@@ -381,8 +381,8 @@ def MakeSimulatedLab(
         builder.Connect(hand.get_output_port(), opening.GetInputPort("command_message"))
         builder.Connect(opening.GetOutputPort("position"), release.GetInputPort(side))
     # Compressed: Drake 1.58's LcmImageArrayToImages decodes uncompressed
-    # float depth and label images only partly (measured: rows after the
-    # first few bytes come back as zeros); the zlib path is exact.
+    # float depth and label images only partly (rows after the first few
+    # bytes come back as zeros); the zlib path is exact.
     images = builder.AddNamedSystem(
         "camera.to_lcm",
         ImageToLcmImageArrayT("color", "depth", "label", do_compress=True),

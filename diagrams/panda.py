@@ -198,9 +198,9 @@ def MakeBimanualIk(scenario: Scenario, dt: float) -> BimanualIk:
     # The model's joint limits: velocities up to `joint_velocity_scale` of
     # theirs, and near a position limit the velocity towards it scaled down
     # to zero (Drake's default margins, 0.0025 / 0.1 rad). Without them an
-    # arm at full stretch flipped its elbow through straight (joint 4 past
-    # its -0.07 rad limit) and whipped the hand 5 cm in 10 ms, which
-    # diverged the cloth (hang_panda, plate turned 37 degrees; README).
+    # arm at full stretch can flip its elbow through straight (joint 4 past
+    # its -0.07 rad limit) and whip the hand 5 cm in 10 ms, which diverges
+    # the cloth.
     limits = JointLimits(plant)
     scale = config.joint_velocity_scale
     recipe.AddIngredient(

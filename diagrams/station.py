@@ -163,7 +163,7 @@ _MATERIALS = {
 # Point-contact stiffness [N/m] of the rigid geometry the grippers meet (the
 # table, the task object and the anchors' hands): a hand pushed against the
 # object by its full actuator force (kp x 5 cm, 150 N) sinks about 0.3 mm in,
-# where the plant's default stiffness let it sink 7 mm.
+# where the plant's default stiffness lets it sink 7 mm.
 RIGID_POINT_STIFFNESS = 1e6
 
 
@@ -483,7 +483,7 @@ def _add_anchor(plant: MultibodyPlant, scenario: Scenario, side: str, p_W0: np.n
     plant.RegisterVisualGeometry(
         anchor, RigidTransform(), Sphere(0.012), f"{side}_anchor", [0.2, 0.2, 0.2, 1.0]
     )
-    # Collision role only (the cameras see what they saw before): a Franka
+    # Collision role only (the cameras see the sphere alone): a Franka
     # hand holding the corner from above, so the table and the task object
     # stop the anchor as they would stop the hand. The prior scene, which has
     # no object, keeps its grippers as the shipped priors were collected
@@ -574,8 +574,8 @@ def _add_clip(
     cloth = scenario.cloth
     instance = plant.AddModelInstance(f"{side}_clip")
     # Heavy while grasped: SAP regularises a weld by the welded bodies' masses,
-    # and a gram-scale clip let the cloth pull it 8 cm off the gripper
-    # (measured). The release monitor makes it light again.
+    # and a gram-scale clip lets the cloth pull it 8 cm off the gripper.
+    # The release monitor makes it light again.
     clip = plant.AddRigidBody(
         "clip",
         instance,

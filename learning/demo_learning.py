@@ -49,11 +49,11 @@ class RewardConfig:
     # `demo_grasp_max_jump` [m] from the median of its neighbours' (two frames
     # either side; the demo grippers move about 3 cm a frame), and filled
     # from the other corner or interpolated. Both corners steer the grasp
-    # prior and w_grasp. On the shipped hang demo f_R misreads them where
-    # the towel hangs over the plate (s1 24 cm off at one frame, s2 5-14 cm
-    # off in the last four). .inf for both (the default): f_R's raw estimates (the
-    # paper's); `hang`, whose grasp prior and grasp terms lean on these
-    # corners, sets 9 px and 0.08 m (scenarios.yaml).
+    # prior and w_grasp. On the shipped hang demo f_R misreads them by up
+    # to 24 cm where the towel hangs over the plate. .inf for both (the
+    # default): f_R's raw estimates (the paper's); `hang`, whose grasp prior
+    # and grasp terms lean on these corners, sets 9 px and 0.08 m
+    # (scenarios.yaml).
     demo_grasp_max_spread_px: float = math.inf
     demo_grasp_max_jump: float = math.inf
     # ... and dropped where it lies more than this [m] from where the
@@ -61,9 +61,8 @@ class RewardConfig:
     # (the hands move smoothly). Where the towel is lowered in front of the
     # plate, seen from above its top edge lies on the plate, and f_R can put
     # both grasped corners there, sure of them and consistently over the
-    # last frames, so that the neighbour test keeps them (a hang demo
-    # recorded on 2026-12-02: 14.6 cm off in the last two frames; with
-    # 0.06 m: 5.7 cm, held at the last frame read right). .inf: off.
+    # last frames, so that the neighbour test keeps them; this test holds
+    # the corner where f_R last read it right. .inf: off.
     demo_grasp_max_deviation: float = math.inf
     # f_A training: steps, batch, learning rate, source-state jitter.
     registration_steps: int = 1500

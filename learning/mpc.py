@@ -71,10 +71,8 @@ class MpcConfig:
     # sampled sequence with the highest reward) or "mean" (the final elite
     # mean, when its predicted rollout is feasible; else the best). The best
     # of 500 noisy samples jitters by up to 3 cm per step; the elite mean is
-    # smoother: hang, the same 10 moved poses in one run: mean 7/10, best
-    # 4/10 (three later runs of the mean: 7, 5, 6/10), so scenarios.yaml sets
-    # it for hang; box: both 10/10, but with the mean 5 trials reached the
-    # step cap with final IoU 0.35-0.6.
+    # smoother and succeeds more often on hang, so scenarios.yaml sets it
+    # for hang; on box it leaves more episodes running to the step cap.
     execute: str = "best"
     # Action prior: "inverse" (the paper's: f_I towards each subgoal) or
     # "grasp" (each gripper straight towards the subgoal's grasped corner:
@@ -164,11 +162,10 @@ class Mpc:
         object's top (the cloth hangs from the grippers or lies on the
         object). A prediction outside is a model error, not a move to rule
         out. Without the floor, f_D's few-millimetre dips under the table for
-        points lying on it broke the workspace rule for every sampled sequence
-        (measured on hang, object turned by 41 degrees); without the ceiling,
-        f_D raising a crumpled towel's far edge 7 cm per step above the
-        grippers did the same at the workspace's 0.5 m ceiling (hang, object
-        turned by 45 degrees)."""
+        points lying on it break the workspace rule for every sampled
+        sequence; without the ceiling, f_D raising a crumpled towel's far edge
+        7 cm per step above the grippers does the same at the workspace's
+        0.5 m ceiling (both on hang with the object turned)."""
         nxt = self.dynamics.forward(s, a)
         i1, i2 = self.demo.grasped
         grippers_z = torch.maximum(s[..., i1, 2] + a[..., 2], s[..., i2, 2] + a[..., 5])

@@ -29,21 +29,15 @@ class SafetyConfig:
     # The controller's view only (states estimated from the camera): judge
     # rule 2 also with the far corners dropped to the surface below them,
     # since a side hanging from a gripper hides its corner and f_R puts it
-    # up by the gripper (SafetyContext.far_corners_may_hang). On `hang`,
-    # seed 0: true-cloth rule breaks 53 -> 16 per 10 trials, successes
-    # 10 -> 7 (README). Rule breaks are always scored without it.
+    # up by the gripper (SafetyContext.far_corners_may_hang). Rule breaks
+    # are always scored without it.
     hidden_corners_hang: bool = True
     # ... and, where a grasped corner is higher above the surface under it
     # than the side is long, with the side hanging free below it, its far
     # corner anywhere within this angle [deg] of straight below (a towel
     # swings as it is carried): f_R, seeing the towel from above, puts the
-    # far corner up by the grippers. On `hang` (seed 2, trial 1, step 18)
-    # the grippers 33 cm up moved 2.7 cm down and back, 153 degrees off the
-    # true side and 145 off straight up, with the far corner 4.6 cm behind
-    # the plumb line. With it, `evaluate --scenarios hang --trials 10`,
-    # seeds 0 / 1 / 2: true rule breaks 0 / 0 / 1 -> 0 / 0 / 0, successes
-    # 9 / 10 / 10 both; box and box_big unchanged (README). 0: straight
-    # below only.
+    # far corner up by the grippers, where a move down and back looks safe
+    # but points far off the true side. 0: straight below only.
     hanging_swing_deg: float = 10.0
     # The controller's view only, as above: once the cloth lies on the
     # object's top (a keypoint within DRAPE_MARGIN of the top face, or
@@ -51,34 +45,25 @@ class SafetyConfig:
     # rule 2 also with each far corner hanging down the object's far side,
     # where a side draped over the object puts it out of the camera's sight
     # (SafetyContext.far_corners_may_drape; the side laid towards the top's
-    # nearest point and square to the face it crosses: hang, seeds 0 / 1 /
-    # 2, true rule breaks 0 / 1 / 2 -> 0 / 0 / 1 with the square path,
-    # successes 9 / 10 / 10 both, README). Once seen on the object, the
-    # cloth is taken to stay there for the episode (MpcController; at
-    # --sampling-seed 1 hang's true rule breaks 2 / 0 / 0 -> 0 / 0 / 0,
-    # README). On for `hang` (scenarios.yaml);
-    # off by default: on `box_big` it also refused the moves that carry the
-    # cloth onto the box (seed 0: 8 of 10 against 10, one trial stuck with
-    # no feasible action while the far corners still trailed behind).
+    # nearest point and square to the face it crosses). Once seen on the
+    # object, the cloth is taken to stay there for the episode
+    # (MpcController), since later estimates can miss it. On for `hang`
+    # (scenarios.yaml); off by default: on `box_big` it also refuses the
+    # moves that carry the cloth onto the box, and can leave no feasible
+    # action while the far corners still trail behind.
     hidden_corners_drape: bool = False
     # The controller's view only: rule 2 judged on a hypothesised hidden far
     # corner (the two switches above) uses tau_d_deg less this [deg], since
-    # where a hidden corner lies is known only roughly. `hang`, 10 at
-    # seeds 0 / 1 / 2: true rule breaks 3 / 4 / 3 -> 1 / 3 / 1, successes
-    # 9 / 9 / 10 -> 8 / 8 / 9 (README), hence off by default.
+    # where a hidden corner lies is known only roughly. Off by default: on
+    # `hang` it removes some rule breaks but costs successes.
     hidden_corner_margin_deg: float = 0.0
     # The controller's view only: rule 2 on the estimated state (every far
     # corner, seen or hypothesised) uses tau_d_deg less this [deg] (the
     # hypothesised ones less hidden_corner_margin_deg on top). The MPC's
     # best action often lies on the rule's boundary, where f_R's few
     # millimetres of error decide on which side of it the true cloth is.
-    # 10 trials at seeds 0 / 1 / 2 of box, hang, box_big, 0 -> 5 degrees,
-    # on the priors and demos shipped before the current ones: true rule
-    # breaks 3 / 3 / 8 -> 0 / 0 / 0 (summed over the seeds), successes
-    # 30 / 30 / 29 -> 29 / 30 / 27; with the current ones and 5 degrees,
-    # 30 / 29 / 29 successes with 0 / 3 / 0 breaks (README). Where no
-    # sampled sequence keeps the margin, the MPC solves the step again
-    # with the rule as written (Mpc.solve) rather than end the episode.
+    # Where no sampled sequence keeps the margin, the MPC solves the step
+    # again with the rule as written (Mpc.solve) rather than end the episode.
     estimate_margin_deg: float = 5.0
     # The controller's view only: the robot measures where it holds s1 and
     # s2, so f_R's own estimate of them says how well it read a frame. Where
@@ -89,19 +74,14 @@ class SafetyConfig:
     # read within this (KeypointEstimator; SafetyContext.
     # far_corner_alternatives). Off (inf) for hang (scenarios.yaml): for a
     # towel hanging under the grippers f_R's grasped corners are 3-7 cm off
-    # in most frames, and its far corners move as it slides. 10
-    # trials at seeds 0 / 1 / 2, true rule breaks without -> with: box_big
-    # 10 / 5 / 6 -> 4 / 3 / 3 and 8 / 2 / 3 in a second run (successes
-    # 10 / 9 / 9 -> 10 / 9 / 8), box 0 / 1 / 0 -> 0 / 0 / 0 (10 / 10 / 10
-    # both; README).
+    # in most frames, and its far corners move as it slides.
     misread_grasp_error: float = 0.10
     # The controller's view only, as above: a frame is also misread where a
     # far corner lies further from the gripper holding its side than this
-    # times the side's rest length (more than the cloth stretches: f_R put
-    # s3 by s4 or the other way round; inf: off). On `box_big` turned 45
-    # degrees (seed 0, trial 8) 42 of 53 frames had a side over 31.5 cm,
-    # where the last far corners read within it were 16 cm off against 31
-    # cm for f_R's (the worse of the two, mean).
+    # times the side's rest length (more than the cloth stretches: f_R has
+    # put s3 by s4 or the other way round, as it often does on `box_big`
+    # turned 45 degrees, where the last far corners read within it lie far
+    # closer to the truth; inf: off).
     misread_side_stretch: float = 1.05
 
     def __post_init__(self):
@@ -363,10 +343,8 @@ def _cloth_across(S: torch.Tensor, size: torch.Tensor) -> torch.Tensor:
     between them cannot go through the object, so it passes over the top.
     On `hang` the side over the plate is out of f_R's sight, which puts its
     far corner 1-3 cm from the gripper in front of the plate while the
-    other side's far corner shows behind it and no keypoint on the top: 6
-    of the 7 true rule breaks looked at (seeds 1 and 2, 2026-12-02). With
-    it, `evaluate --scenarios hang --trials 10`, seeds 0 / 1 / 2: true rule
-    breaks 1 / 4 / 3 -> 0 / 2 / 2, successes 8 / 8 / 9 both (README)."""
+    other side's far corner shows behind it and no keypoint on the top, so
+    only this test sees the cloth on the object."""
     half, top = size[:2] / 2, size[2]
     below = S[..., 2] < top
     out = torch.zeros(S.shape[:-2], dtype=torch.bool)
@@ -406,10 +384,9 @@ def _draped_straight(
     the face it crosses (the face g lies furthest beyond), from g's own place
     along that face (kept within DRAPE_MARGIN of its ends): a sheet draped
     over a straight edge keeps its sides square to the edge, so a side
-    grasped beyond the plate's end hangs beyond it. On `hang` (2026-12-02,
-    the rule breaks of seeds 1 and 2 on the true cloth) the true far corner
-    lay 1-4 cm beyond the plate's end, where `_draped` puts it at the end,
-    15 degrees less off the move."""
+    grasped beyond the plate's end hangs beyond it. On `hang` the true far
+    corner can lie a few centimetres beyond the plate's end, where
+    `_draped` puts it at the end, less off the move than the true side."""
     half = torch.as_tensor(ctx.object_size[:2], dtype=g.dtype) / 2
     gap = g[..., :2].abs() - half  # (..., 2) how far g lies beyond each face
     # The crossed axis is the one g lies furthest beyond: 1 (a face of

@@ -63,32 +63,25 @@ class VbdConfig:
     # and `cloth.positions` see has the same grid, two layers). 16 x 16 is
     # the paper's 256 vertices (2 cm apart on the 30 cm cloth): the newton
     # step costs 7.5 ms CPU per 10 ms there against 13.4 ms at 21 x 21, and
-    # every scripted demo succeeds at both (bench sim, README). `box` (and
+    # every scripted demo succeeds at both (bench sim). `box` (and
     # its variants) use 21 x 21 checkerboard for the cover's drape
     # (scenarios.yaml).
     resolution: list[int] = dc.field(default_factory=lambda: [16, 16])
     # How the sheet's grid cells are split into two triangles: "uniform"
     # (every cell along the same diagonal) or "checkerboard" (the diagonals
     # alternating, as in the FEM slab's tetrahedra). The uniform sheet has
-    # a preferred shear and fold direction: over 21 plate poses the scripted
-    # hang's towel ended lowest at the plate's left end in 7 of the 8 poses
-    # turned more than 30 degrees, whichever way the plate was turned, and
-    # touched the table at one (20 of 21 succeeded, lowest point at least
-    # 3.3 mm); checkerboard: 21 of 21, at least 14.6 mm. But with the priors
-    # and the demos redone on the checkerboard sheet, hang imitated 6 of 10
-    # (evaluate --seed 0; the classifier never fired) against 9 of 10, so
-    # the shipped priors and demos and this default stay uniform (README,
-    # 2026-12-02).
+    # a preferred shear and fold direction: with the plate turned, the
+    # scripted hang's towel ends lowest at the plate's left end whichever
+    # way it is turned, and can touch the table; the checkerboard sheet
+    # stays clear of it. But hang's imitation does worse with the priors
+    # and demos redone on the checkerboard sheet, so the shipped priors and
+    # demos and this default stay uniform.
     triangulation: str = "uniform"
     # Substeps per plant time step (even: a captured step swaps two states)
-    # and VBD iterations per substep. Four iterations were tried as the
-    # default (2026-12-01): the newton step was about a fifth cheaper (bench
-    # sim, 16 x 16: 1.15-1.68x real time in every phase), but with the
-    # priors and demos redone on it the imitation lost successes (evaluate,
-    # seeds 0 / 1 / 2: hang 8 / 5 / 10, box_big 8 / 7 / 8 of 10, against
-    # 9 / 9 / 10 and 10 / 9 / 9 here) and the scripted box_big cover failed
-    # at one of five moved poses; the towel stretched 1.0% hanging from the
-    # grippers against 0.9% (README, Performance).
+    # and VBD iterations per substep. Four iterations would make the newton
+    # step about a fifth cheaper, but the towel stretches more, the
+    # imitation loses successes with the priors and demos redone on it, and
+    # the scripted box_big cover fails at some moved poses.
     substeps: int = 2
     iterations: int = 5
     # Membrane stiffness [N/m] (the triangles' Lame coefficients mu and
@@ -103,12 +96,10 @@ class VbdConfig:
     # which is newton's dihedral 1/2 k L theta^2 for small angles, applied
     # as an external force once per substep) or "dihedral" (newton's own,
     # inside the VBD iterations). Bending is most of newton's VBD cost here:
-    # the captured step of the box scene lying flat took 7.6 ms with
-    # "dihedral" and 3.3 ms with "quadratic" (3 particle colours instead of
-    # 4), and the cloth drapes the same: after the scripted box cover the
-    # reach figure is 5.16 against 5.07 cm, the side flaps 1.7 against 1.8
-    # cm; scripted demos at the nominal and 5 moved poses 25 / 25 against
-    # 24 / 25 (README, Performance).
+    # "quadratic" needs 3 particle colours instead of 4 and less than halves
+    # the captured step of the box scene lying flat, and the cloth drapes
+    # the same (the scripted box cover's reach and side flaps, the scripted
+    # demos at moved poses).
     bending_model: str = "quadratic"
     # Bending stiffness [N m / rad^2 per metre of edge]: soft enough that a
     # free edge hangs down a box's side within 1-3 cm.
@@ -127,10 +118,9 @@ class VbdConfig:
     # lets the cloth pivot; false keeps each held particle at its rest
     # offset from its gripper whatever the edge does. With the patches
     # fixed, a grasped edge turned 37-45 degrees (the object turned, the
-    # cloth not) shears the cloth next to it: the scripted hang's towel
-    # ended 0.7-2.2 cm over the table at such poses against about 4 cm with
-    # the plate square; turning with the edge, 3.3-4.8 cm at all 20 poses of
-    # seeds 0 and 1 (README, Performance).
+    # cloth not) shears the cloth next to it and lowers the scripted hang's
+    # towel to within a couple of centimetres of the table; turning with the
+    # edge keeps it about as high as with the plate square.
     grasp_turns: bool = True
     # Mass per area [kg/m^2] (a light cotton towel).
     areal_density: float = 0.2
@@ -144,23 +134,21 @@ class VbdConfig:
     contact_distance: float = 0.004
     # Contact of the cloth's edges and faces with the table and the object,
     # not only of its particles: with particles only, the 1 cm plate edge
-    # slipped between the hang towel's particles 1.5 cm apart and the towel
-    # slid off (scripted hang failed; succeeded with it, about 10% slower).
+    # slips between the hang towel's particles 1.5 cm apart and the towel
+    # slides off. It costs about 10% more time.
     surface_contact: bool = True
     # Which of the cloth's elements the table touches where surface_contact
     # is on: "surface" (particles, edges and faces), "edges" (particles and
     # edges) or "particles". Its top is flat, so a triangle whose particles
     # lie above it lies above it, and leaving elements out only drops
     # contact records (flat on it, the 16 x 16 sheet's 705 edges and 450
-    # faces besides its 256 particles): the captured newton step of the box
-    # scene lying flat took 7.3 ms with "surface", 6.3-6.4 with "edges" and
-    # 5.3 with "particles". But the cloth meets the table differently where
-    # it folds onto it: with "particles" the scripted box cover's side flaps
-    # stood 4.3 cm out from the box instead of 1.8 cm, and hang's imitation
-    # gave 39 of 50 against 43 of 50; with "edges" the flaps stayed at 1.8
-    # cm, but the scripted demos at five moved poses gave 23 of 25 against 24
-    # (the hang towel turned 44.75 degrees 4.0 mm above the table, the bar
-    # 5 mm; README, Performance).
+    # faces besides its 256 particles), which makes the newton step of a
+    # cloth lying flat up to about a quarter cheaper. But the cloth meets
+    # the table differently where it folds onto it: on this default sheet,
+    # with "particles" the scripted box cover's side flaps stand further out
+    # from the box and hang's imitation does worse; with "edges" the flaps
+    # stay close, but the hang towel on a plate turned about 45 degrees ends
+    # below the 5 mm bar above the table.
     table_contact: str = "surface"
 
     def __post_init__(self):
@@ -553,9 +541,9 @@ def _default_camera() -> CameraConfig:
 
 
 def _default_plant() -> MultibodyPlantConfig:
-    # Measured on Drake 1.58 (README, Performance): with "sap" at 0.01 s a
-    # released cloth was thrown 30 cm up by friction and a flat one domed;
-    # "similar" at 0.01 s stays flat and keeps a hung cloth on the plate.
+    # On Drake 1.58, "sap" at 0.01 s throws a released cloth up by friction
+    # and domes a flat one; "similar" at 0.01 s stays flat and keeps a hung
+    # cloth on the plate.
     return MultibodyPlantConfig(
         time_step=0.01,
         discrete_contact_approximation="similar",

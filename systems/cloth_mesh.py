@@ -66,7 +66,7 @@ def TopTriangles(top_grid: np.ndarray, checkerboard: bool = False) -> np.ndarray
     (nx, ny) vertex grid, two per cell: every cell split along the same
     diagonal, or with `checkerboard` the cells' diagonals alternating as in
     the slab's tetrahedra (MakeClothMesh), so the sheet has no preferred
-    shear or fold direction (`cloth.vbd.triangulation`, README)."""
+    shear or fold direction (`cloth.vbd.triangulation`)."""
     a = top_grid[:-1, :-1]
     b = top_grid[1:, :-1]
     c = top_grid[1:, 1:]
@@ -86,8 +86,8 @@ def MakeClothMesh(
 
     Each grid cell is split into 6 tetrahedra around one of its diagonals; the
     diagonal is mirrored in alternate cells so the slab has no preferred shear
-    direction (a uniform split made a flat cloth on a table bulge twice as much
-    under friction, measured on Drake 1.58).
+    direction (a uniform split makes a flat cloth on a table bulge twice as
+    much under friction on Drake 1.58).
     """
     nx, ny, nz = resolution
     xs = np.linspace(-size[0] / 2, size[0] / 2, nx)

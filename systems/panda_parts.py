@@ -30,11 +30,10 @@ class GravityCompensatedCommand(LeafSystem):
     arm then moves as a weightless arm under the plain PD would, up to the
     one-step lag of q.
 
-    The arms used to have gravity switched off instead. Then the PD's
-    impulses vanish at rest, and Drake 1.58's SAP solver, whose tolerance is
-    relative to them, failed to converge about 1.1 s into a hold (box_panda,
-    hang_panda and prior_panda with zero actions from the start, measured);
-    holding the weight keeps them finite.
+    With gravity switched off on the arms instead, the PD's impulses vanish
+    at rest, and Drake 1.58's SAP solver, whose tolerance is relative to
+    them, fails to converge about a second into a hold; holding the weight
+    keeps them finite.
 
     Args:
         plant: a model of the arms with gravity (the IK's control model).

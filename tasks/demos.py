@@ -83,8 +83,8 @@ def _hang_waypoints(scenario: Scenario, start: np.ndarray) -> list[np.ndarray]:
     edge when the edge crosses, so the cloth stays taut over the plate and
     does not slide while it is lowered: the part behind keeps the length it
     had when it caught (about half the cloth). Lowering straight down instead
-    slackened the cloth, the part behind slid down to the table and pulled the
-    whole cloth off behind in 4 of 5 moved poses (measured). The grippers are
+    slackens the cloth: the part behind slides down to the table and pulls the
+    whole cloth off behind. The grippers are
     closer together than for the box (0.76 of the edge) so the grasped
     corners pass near the plate's ends."""
     sx, sy, sz = scenario.object.size

@@ -63,6 +63,8 @@ DESCRIPTIONS = {
     "report": "Build the evaluation's tables and figures (success with Wilson "
     "intervals, paired comparisons against ours, stop against count) from "
     "evaluate's trial lines.",
+    "diagram": "Draw the imitation diagram (its systems, ports and connections) "
+    "as SVG, with its Graphviz source beside it: README's picture.",
 }
 
 
@@ -708,6 +710,24 @@ def _report(args) -> dict:
     return Report(runs=args.runs, out=args.out)
 
 
+def _add_diagram(p):
+    p.add_argument(
+        "--out",
+        type=Path,
+        default=Path("docs/imitation_diagram.svg"),
+        help="SVG file to write (default docs/imitation_diagram.svg); the "
+        "Graphviz source goes beside it (.dot)",
+    )
+    p.add_argument("--scenario", default="box", help="scenario whose demo it imitates")
+
+
+@command("diagram")(_add_diagram)
+def _diagram(args) -> dict:
+    from fabric_imitation.tools.picture import DrawImitationDiagram
+
+    return DrawImitationDiagram(out=args.out, scenario_name=args.scenario)
+
+
 # The referee's rules for a violation (tasks/referee.py's ON_VIOLATION;
 # repeated here so that a bad flag is refused before torch is imported).
 ON_VIOLATION = ("stop", "count")
@@ -809,7 +829,7 @@ def _print(summary: dict, as_json: bool, out) -> None:
 
 # Lines that tell a user nothing: the QP solver of Drake's differential IK
 # prints the first on every solve; the Panda URDF's tags Drake ignores; the
-# renderer skipping the arms' .dae visuals (README: known limitations).
+# renderer skipping the arms' .dae visuals.
 CHATTER = (
     "Polishing not needed",
     "found as a child of 'joint' is currently unsupported",

@@ -494,11 +494,9 @@ def Imitate(
 def TorchThreads() -> int:
     """Torch threads for the controller and f_A's training: one.
 
-    Measured with `bench mpc` (box, N = 500, h = 5, this project's 2-core
-    machine): one sampling iteration takes about 56 ms on one thread and
-    75 ms on two (the tensors are too small for torch's intra-op threads to
-    pay), and with another process keeping one core busy two threads spin
-    against it (p95 337 ms) while one thread keeps its pace (p95 79 ms).
-    OMP_WAIT_POLICY=PASSIVE fixed the loaded case but made the idle one 14x
-    slower."""
+    The MPC's tensors are too small for torch's intra-op threads to pay: a
+    second thread makes a sampling iteration slower (`bench mpc`), and where
+    another process keeps a core busy two threads spin against it while one
+    keeps its pace. OMP_WAIT_POLICY=PASSIVE fixes the loaded case but makes
+    the idle one many times slower."""
     return 1
