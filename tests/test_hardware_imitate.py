@@ -53,6 +53,7 @@ def _hardware_run(scenario, *, stop_camera_at=None):
     return prepared, run, lab, lab_station
 
 
+@pytest.mark.slow
 def test_imitate_on_lcm_drivers_covers_the_box_in_the_simulated_lab():
     scenario = LoadScenario(scenario_name="box_panda")
     prepared, run, lab, lab_station = _hardware_run(scenario)
@@ -74,6 +75,7 @@ def test_imitate_on_lcm_drivers_covers_the_box_in_the_simulated_lab():
     assert released[0] == 1.0  # the hand open commands reached the lab
 
 
+@pytest.mark.slow
 def test_a_camera_that_stops_ends_the_run_within_one_control_period():
     scenario = LoadScenario(scenario_name="box_panda")
     _, run, _, _ = _hardware_run(scenario, stop_camera_at=0.6)

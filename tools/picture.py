@@ -106,4 +106,4 @@ def DrawImitationDiagram(*, out: Path, scenario_name: str = "box") -> dict:
         tmp.write_bytes(data)
         os.replace(tmp, path)
         written.append(str(path))
-    return {"written": written, "nodes": dot.count("[shape=")}
+    return {"written": written, "systems": dot.count(" [label=")}
