@@ -2,6 +2,7 @@
 trials' JSON lines."""
 
 import numpy as np
+import pytest
 from fabric_imitation.tools.evaluate import PROTOCOLS, ResultsMarkdown, _aggregate
 
 
@@ -67,6 +68,7 @@ def test_final_iou_is_bounded_for_a_twisted_outline():
     assert raster_iou(bow_tie, bow_tie) == 1.0
 
 
+@pytest.mark.slow
 def test_an_evaluation_killed_mid_way_resumes_without_repeating_or_losing(tmp_path):
     import json
     import os
@@ -115,13 +117,13 @@ def test_an_evaluation_killed_mid_way_resumes_without_repeating_or_losing(tmp_pa
 def test_a_trial_that_raises_is_one_failed_row(monkeypatch):
     """A crash inside a trial is recorded as that trial's failure (the sweep
     goes on), and the cell counts it without its episode figures."""
-    import fabric_imitation.diagrams.imitation as imitation
+    import fabric_imitation.tools.episode as episode
     import fabric_imitation.tools.evaluate as evaluate
 
     def crash(**kwargs):
         raise ValueError("the controller exploded")
 
-    monkeypatch.setattr(imitation, "Imitate", crash)
+    monkeypatch.setattr(episode, "Imitate", crash)
     monkeypatch.setitem(evaluate._PREPARED, "box", object())
     row = evaluate._run_trial(
         {
@@ -168,6 +170,7 @@ def test_returns_and_curves_follow_the_trials(tmp_path):
     assert path.stat().st_size > 10_000
 
 
+@pytest.mark.slow
 def test_ray_and_local_evaluations_write_the_same_trials(tmp_path):
     """`--executor ray` (a local Ray) stores the same trial rows and summary
     as local processes."""
@@ -234,7 +237,7 @@ def test_a_sampling_seed_is_another_run_of_the_same_poses(tmp_path, monkeypatch)
     another's."""
     import json
 
-    import fabric_imitation.diagrams.imitation as imitation
+    import fabric_imitation.tools.episode as episode
     import fabric_imitation.tools.evaluate as evaluate
 
     seeds = []
@@ -244,7 +247,7 @@ def test_a_sampling_seed_is_another_run_of_the_same_poses(tmp_path, monkeypatch)
         row = _row(0, True, 0, 20, 0.9)
         return {k: v for k, v in row.items() if k not in ("trial", "trial_seconds")}
 
-    monkeypatch.setattr(imitation, "Imitate", imitate)
+    monkeypatch.setattr(episode, "Imitate", imitate)
     monkeypatch.setattr(evaluate, "_prepare", lambda job: object())
     out = tmp_path / "eval.jsonl"
     common = dict(

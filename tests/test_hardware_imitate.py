@@ -99,6 +99,7 @@ class _CtrlC(LeafSystem):
         os.kill(os.getpid(), signal.SIGINT)
 
 
+@pytest.mark.slow
 def test_ctrl_c_tells_both_arms_to_hold_and_says_so():
     scenario = LoadScenario(scenario_name="box_panda")
     prepared = PrepareImitation(

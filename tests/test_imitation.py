@@ -256,6 +256,7 @@ def test_keypoint_net_spread_is_small_where_the_heatmap_is_sharp():
     assert abs(float(spread[0, 1]) - 32 / math.sqrt(6)) < 0.05
 
 
+@pytest.mark.slow
 def test_registration_recovers_a_known_rigid_transform():
     rng = np.random.default_rng(0)
     source = square(0.0, 0.0, 0.3) + rng.normal(0, 0.005, (8, 3)).astype(np.float32)

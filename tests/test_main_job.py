@@ -24,6 +24,7 @@ TINY_MPC = MpcConfig(
 )
 
 
+@pytest.mark.slow
 def test_imitate_smoke_run_with_tiny_settings():
     scenario = LoadScenario(
         scenario_name="box",
@@ -119,6 +120,7 @@ def test_priors_that_do_not_match_the_camera_image_size():
         Imitate(scenario=scenario, scenario_name="box", progress=False)
 
 
+@pytest.mark.slow
 def test_object_pose_outside_the_workspace():
     result = _cli("--scenario", "box", "--object-pose", "0.2", "-0.6", "0")
     assert result.returncode == 2

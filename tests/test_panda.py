@@ -94,6 +94,7 @@ def test_hands_follow_a_10cm_target_step_within_5mm(make):
         assert error < 0.005, (side, error)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("make", [sim_rig, lcm_rig], ids=["simulated", "lcm"])
 def test_hands_hold_still_at_their_targets(make):
     """Targets held from the start: the arms, which have their weight (the
@@ -105,6 +106,7 @@ def test_hands_hold_still_at_their_targets(make):
         assert np.linalg.norm(rig.hand(side) - rig.corners[side]) < 0.002
 
 
+@pytest.mark.slow
 def test_joint_limits_hold_for_200_random_targets(rng):
     rig = sim_rig()
     plant = rig.built.plant
@@ -148,6 +150,7 @@ def test_joint_limits_hold_for_200_random_targets(rng):
     assert saturated > 20  # out-of-reach targets were reported
 
 
+@pytest.mark.slow
 def test_an_arm_at_full_stretch_moves_smoothly_within_its_joint_limits():
     """The right hand led out to full stretch across the table (the path an
     imitation took at the plate turned 37 degrees). Without the joint limits

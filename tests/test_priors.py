@@ -54,6 +54,7 @@ def _arrays(path):
         return {k: f[k][:] for k in f}
 
 
+@pytest.mark.slow
 def test_two_workers_collect_the_same_data_as_one(tiny_dataset, tmp_path):
     two = tmp_path / "two.h5"
     collect(two, 12, workers=2)
@@ -81,6 +82,7 @@ def test_dataset_holds_what_a_transition_needs(tiny_dataset):
     )
 
 
+@pytest.mark.slow
 def test_collection_killed_with_sigkill_resumes_to_exactly_n(tiny_dataset, tmp_path):
     out = tmp_path / "killed.h5"
     cmd = [
@@ -120,6 +122,7 @@ def test_collection_killed_with_sigkill_resumes_to_exactly_n(tiny_dataset, tmp_p
         np.testing.assert_array_equal(a[k], b[k], err_msg=k)
 
 
+@pytest.mark.slow
 def test_ray_executor_collects_the_same_data(tiny_dataset, tmp_path):
     ray = pytest.importorskip("ray")
     ray.init(num_cpus=2, include_dashboard=False, log_to_driver=False)
@@ -177,6 +180,7 @@ def tiny_priors(tiny_dataset, tmp_path_factory):
     return out, summary
 
 
+@pytest.mark.slow
 def test_training_overfits_a_tiny_dataset(tiny_dataset, tmp_path):
     out = tmp_path / "p"
     train_priors(
