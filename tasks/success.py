@@ -106,3 +106,43 @@ def TaskSuccess(
     if scenario.task == "hang":
         return HangSuccess(scenario, positions_W)
     return SuccessReport(success=False, details={"note": "prior scene has no task"})
+
+
+def InObjectFrame(scenario: Scenario, positions_W: np.ndarray) -> np.ndarray:
+    """(N, 3) points in the task object's frame."""
+    return world_to_object(positions_W, ObjectPlanarPose(scenario))
+
+
+def ReachDistances(scenario: Scenario, p_O: np.ndarray) -> np.ndarray:
+    """Per vertex (box frame): its horizontal distance [m] beyond the box's
+    footprint if it is more than 3 cm above the table, else 0."""
+    out = np.maximum(np.abs(p_O[:, :2]) - np.array(scenario.object.size[:2]) / 2, 0)
+    return np.where(p_O[:, 2] > 0.03, np.linalg.norm(out, axis=1), 0.0)
+
+
+def DrapeReach(scenario: Scenario, positions_W: np.ndarray) -> float:
+    """Cloth-likeness of a cover: the furthest horizontal distance [m] beyond
+    the box's footprint reached by cloth points more than 3 cm above the
+    table (a cloth hangs down the sides; a card-like one stands out)."""
+    p_O = InObjectFrame(scenario, positions_W)
+    return float(ReachDistances(scenario, p_O).max(initial=0.0))
+
+
+def SideFlapReach(
+    scenario: Scenario, positions_W: np.ndarray, corner: float = 0.02
+) -> tuple[float, float]:
+    """The reach figure of DrapeReach measured only off the middle of the
+    box's sides (cloth more than 3 cm up, within `corner` of a side's ends
+    left out): (beyond the left / right sides, beyond the front / back)
+    [m]. At the back corners a cloth pulled from behind rises from the
+    table as a sloping wing, which DrapeReach's maximum picks up."""
+    p_O = InObjectFrame(scenario, positions_W)
+    half = np.array(scenario.object.size[:2]) / 2
+    high = p_O[:, 2] > 0.03
+    out = np.maximum(np.abs(p_O[:, :2]) - half, 0)
+    along_x = high & (np.abs(p_O[:, 1]) <= half[1] - corner)
+    along_y = high & (np.abs(p_O[:, 0]) <= half[0] - corner)
+    return (
+        float(out[along_x, 0].max(initial=0.0)),
+        float(out[along_y, 1].max(initial=0.0)),
+    )

@@ -14,7 +14,8 @@ from fabric_imitation.systems.cloth_simulator import (
     QuadraticBendingWeights,
 )
 from fabric_imitation.tasks.demos import ScriptedDemoPlan
-from fabric_imitation.tools.bench import DrapePlot, DrapeReach, SideFlapReach
+from fabric_imitation.tasks.success import DrapeReach, SideFlapReach
+from fabric_imitation.tools.bench import DrapePlot
 from fabric_imitation.tools.simulation import OpenLoopRun, SimulationDivergedError
 
 from tests.conftest import SMALL_CLOTH

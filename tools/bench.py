@@ -20,11 +20,17 @@ from pathlib import Path
 
 import numpy as np
 from fabric_imitation.diagrams.station import StationPorts
-from fabric_imitation.learning.state import SIDES, world_to_object
+from fabric_imitation.learning.state import SIDES
 from fabric_imitation.scenarios.loader import LoadScenario
-from fabric_imitation.scenarios.schema import Scenario, yaw_rad
+from fabric_imitation.scenarios.schema import Scenario
 from fabric_imitation.tasks.demos import ScriptedDemoPlan
-from fabric_imitation.tasks.success import TaskSuccess
+from fabric_imitation.tasks.success import (
+    DrapeReach,
+    InObjectFrame,
+    ReachDistances,
+    SideFlapReach,
+    TaskSuccess,
+)
 from fabric_imitation.tools.simulation import OpenLoopRun
 
 DEFAULT_SCENARIOS = ("prior", "box", "hang", "box_big", "box_panda", "hang_panda")
@@ -44,7 +50,7 @@ def _checks(
     out = {"deepest_below_table_mm": round(1000 * max(below, 0.0), 2)}
     ok = below <= PENETRATION_TOLERANCE
     if scenario.object.kind != "none":
-        p_O = _in_box_frame(scenario, P)
+        p_O = InObjectFrame(scenario, P)
         half = np.array(scenario.object.size) / 2
         depth = np.minimum.reduce(
             [
@@ -112,46 +118,6 @@ def _grippers_z(run: OpenLoopRun) -> float:
 def _grid(t0: float, seconds: float, every: float = 0.05) -> list[float]:
     n = max(1, int(round(seconds / every)))
     return [t0 + (k + 1) * seconds / n for k in range(n)]
-
-
-def _in_box_frame(scenario: Scenario, positions_W: np.ndarray) -> np.ndarray:
-    pose = scenario.object.pose
-    return world_to_object(positions_W, np.array([pose[0], pose[1], yaw_rad(pose)]))
-
-
-def _reach_distances(scenario: Scenario, p_O: np.ndarray) -> np.ndarray:
-    """Per vertex (box frame): its horizontal distance [m] beyond the box's
-    footprint if it is more than 3 cm above the table, else 0."""
-    out = np.maximum(np.abs(p_O[:, :2]) - np.array(scenario.object.size[:2]) / 2, 0)
-    return np.where(p_O[:, 2] > 0.03, np.linalg.norm(out, axis=1), 0.0)
-
-
-def DrapeReach(scenario: Scenario, positions_W: np.ndarray) -> float:
-    """Cloth-likeness of a cover: the furthest horizontal distance [m] beyond
-    the box's footprint reached by cloth points more than 3 cm above the
-    table (a cloth hangs down the sides; a card-like one stands out)."""
-    p_O = _in_box_frame(scenario, positions_W)
-    return float(_reach_distances(scenario, p_O).max(initial=0.0))
-
-
-def SideFlapReach(
-    scenario: Scenario, positions_W: np.ndarray, corner: float = 0.02
-) -> tuple[float, float]:
-    """The reach figure of DrapeReach measured only off the middle of the
-    box's sides (cloth more than 3 cm up, within `corner` of a side's ends
-    left out): (beyond the left / right sides, beyond the front / back)
-    [m]. At the back corners a cloth pulled from behind rises from the
-    table as a sloping wing, which DrapeReach's maximum picks up."""
-    p_O = _in_box_frame(scenario, positions_W)
-    half = np.array(scenario.object.size[:2]) / 2
-    high = p_O[:, 2] > 0.03
-    out = np.maximum(np.abs(p_O[:, :2]) - half, 0)
-    along_x = high & (np.abs(p_O[:, 1]) <= half[1] - corner)
-    along_y = high & (np.abs(p_O[:, 0]) <= half[0] - corner)
-    return (
-        float(out[along_x, 0].max(initial=0.0)),
-        float(out[along_y, 1].max(initial=0.0)),
-    )
 
 
 def BenchScenario(
@@ -277,10 +243,10 @@ def DrapePlot(drapes: list[dict], path: Path) -> None:
     )
     for row, d in zip(axes, drapes, strict=True):
         scenario = d["scenario"]
-        p_O = _in_box_frame(scenario, d["positions_W"])
+        p_O = InObjectFrame(scenario, d["positions_W"])
         size = np.array(scenario.object.size)
         half = size[:2] / 2
-        beyond = _reach_distances(scenario, p_O)
+        beyond = ReachDistances(scenario, p_O)
         k = int(np.argmax(beyond))
         for ax, (u, v, title) in zip(row, views, strict=True):
             ax.scatter(p_O[:, u], p_O[:, v], s=2, c=p_O[:, 2], cmap="viridis")
