@@ -56,7 +56,6 @@ from fabric_imitation.learning.limits import (
     limit_actions,
 )
 from fabric_imitation.learning.mpc import Mpc
-from fabric_imitation.learning.safety import valid_actions
 
 
 def _states(demo_states) -> torch.Tensor:
@@ -343,12 +342,13 @@ class TcnMpc(Mpc):
     @torch.no_grad()
     def rollout(self, S, X, window):
         cfg = self.config
-        cost = torch.zeros(len(X))
+        states = self._predicted_states(S, X)
+        bad = torch.zeros(cfg.horizon, len(X), dtype=torch.bool)
+        for v in self._violations(states, X).values():
+            bad |= v
         reward = torch.zeros(len(X))
-        for i, (s, a, s_next) in enumerate(self._predicted_steps(S, X)):
-            ok = valid_actions(s, a, self.safety, self.ctx, S_next=s_next)
-            cost += (~ok).float()
+        for i in range(cfg.horizon):
             goal = self._aligned(i)
-            z = self.b.tcn_embed(torch.cat([s_next, goal[None]]), S)
+            z = self.b.tcn_embed(torch.cat([states[i + 1], goal[None]]), S)
             reward -= cfg.gamma**i * (z[:-1] - z[-1]).norm(dim=-1)
-        return reward, cost
+        return reward, bad.sum(0).float()

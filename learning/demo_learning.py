@@ -13,7 +13,7 @@ import time
 import numpy as np
 import torch
 from fabric_imitation.learning.models import Mlp
-from fabric_imitation.learning.polygon import iou, iou_batched
+from fabric_imitation.learning.polygon import iou_pairs
 from fabric_imitation.learning.state import corner_indices
 
 
@@ -40,8 +40,6 @@ class RewardConfig:
     # ... plus this [1/m] x mean distance of the grasped corners (measured by
     # the robot, so trusted more than the estimated keypoints). 0: off.
     progress_grasp_weight: float = 0.0
-    # Score the MPC's thousands of predicted states with a compiled IoU.
-    compile_iou: bool = True
     # The demo's grasped corners s1, s2 tracked through the demo
     # (`track_grasped_corners`): a frame's f_R estimate of one is dropped where
     # f_R is unsure of it (heatmap spread above `demo_grasp_max_spread_px`
@@ -237,21 +235,18 @@ class DemoModel:
         self.f_A = registration
         self.config = config
         self.polygons = self.states[..., :2]
-        self.compile_iou = config.compile_iou
         self.centres = self.polygons.mean(-2)
         idx = corner_indices(self.states.shape[-2])
         # Keypoint indices of the grasped corners s1, s2.
         self.grasped = [idx["s1"], idx["s2"]]
 
     def similarity(self, S: torch.Tensor, window: tuple[int, int] | None = None):
-        """IoU (..., W) of S with demo states lo..hi-1 (default all)."""
+        """IoU (..., W) of the top-down polygons of S with demo states
+        lo..hi-1 (default all)."""
         lo, hi = window or (0, self.T)
-        A, B = S[..., None, :, :2], self.polygons[lo:hi]
         lead = S.shape[:-2]
-        if self.compile_iou and math.prod(lead) * (hi - lo) >= 2000:
-            flat = A.reshape(-1, 1, *A.shape[-2:]).contiguous()
-            return iou_batched(flat, B[None].contiguous()).reshape(*lead, hi - lo)
-        return iou(A, B)
+        A = S[..., :2].reshape(-1, *S.shape[-2:-1], 2)
+        return iou_pairs(A, self.polygons[lo:hi]).reshape(*lead, hi - lo)
 
     def progress(self, S: torch.Tensor, window: tuple[int, int] | None = None):
         """J (...): index of the most similar demo state by IoU of the top-down
@@ -303,7 +298,7 @@ class DemoModel:
         """Termination classifier: IoU with S_E^T above tau_I and J = T - 1."""
         S = torch.as_tensor(S, dtype=torch.float32)
         J, _ = self.progress(S)
-        last_iou = iou(S[..., :2], self.polygons[-1])
+        last_iou = self.similarity(S, (self.T - 1, self.T))[..., 0]
         return (last_iou > self.config.tau_i) & (J == self.T - 1)
 
 

@@ -9,7 +9,8 @@ Each control step, from the current state S_t:
    with f_D; score sum_k gamma^(k-1) R_E(S_t+k) and count rule violations;
 3. keep the feasible ones, move (mu, Sigma) towards their top elites with
    rate beta; stop when max std < tau_conv and a feasible one exists, or at
-   the iteration cap / time budget;
+   the iteration cap (a count, never the clock: the same seed gives the same
+   action on an idle and on a busy machine);
 4. return the first action of the best feasible sequence (the paper's
    choice) or, with `execute="mean"`, of the final elite mean when its
    predicted rollout is feasible.
@@ -50,9 +51,6 @@ class MpcConfig:
     sigma0: float = 0.01  # initial noise std [m]
     tau_conv: float = 0.002  # converged when max std is below [m]
     max_iterations: int = 4
-    # [s] per control step: an iteration starts only if, at the pace of the
-    # last one, it ends within the budget (the first always runs).
-    time_budget: float = 0.095
     gamma: float = 0.9
     # Ablations (paper Table I): no_mpc applies f_I's action; no_prior samples
     # around zero; no_cost ignores the constraint cost.
@@ -109,6 +107,9 @@ class MpcResult:
     reward: float
     progress: int
     seconds: float
+    # The paper's convergence test held (a feasible elite and the noise's
+    # largest standard deviation below tau_conv) before the iteration cap.
+    converged: bool = False
     # When infeasible: how many of the last iteration's sampled sequences
     # break each safety rule at some step (which rule blocked the step).
     blocked_by: dict[str, int] | None = None
@@ -204,8 +205,9 @@ class Mpc:
                 valid_actions(s, a, self.safety, self.ctx, S_next=nxt)
             ):
                 a = self._nearest_valid(s, a, gen)
+                nxt = self._predict(s, a)
             out.append(a[0])
-            s = self._predict(s, a)
+            s = nxt
         return torch.stack(out)
 
     def subgoal(self, s: torch.Tensor, window, i: int) -> torch.Tensor:
@@ -245,41 +247,50 @@ class Mpc:
         d = torch.where(ok, d, torch.full_like(d, float("inf")))
         return cand[d.argmin()][None]
 
-    def _predicted_steps(self, S: torch.Tensor, X: torch.Tensor):
-        """Yields (s, a, s_next) at each step of sequences X (N, h, 6) from S,
-        s_next predicted by f_D."""
+    def _predicted_states(self, S: torch.Tensor, X: torch.Tensor) -> torch.Tensor:
+        """(h + 1, N, M, 3): S and the states f_D predicts along sequences X
+        (N, h, 6), one batched call per horizon step."""
         s = S.expand(len(X), *S.shape)
+        out = [s]
         for k in range(self.config.horizon):
-            a = X[:, k]
-            s_next = self._predict(s, a)
-            yield s, a, s_next
-            s = s_next
+            s = self._predict(s, X[:, k])
+            out.append(s)
+        return torch.stack(out)
+
+    def _violations(self, states: torch.Tensor, X: torch.Tensor):
+        """Each rule's violations (h, N) at every step of sequences X (N, h,
+        6) with predicted states (h + 1, N, M, 3): one batched call."""
+        return rule_violations(
+            states[:-1], X.transpose(0, 1), self.safety, self.ctx, S_next=states[1:]
+        )
 
     @torch.no_grad()
     def rollout(self, S: torch.Tensor, X: torch.Tensor, window):
-        """Discounted rewards (N,) and violation counts (N,) of sequences X."""
+        """Discounted rewards (N,) and violation counts (N,) of sequences X.
+
+        With the constraint cost on, only sequences that break no rule are
+        scored (the others' reward, never used, is -inf)."""
         cfg = self.config
-        cost = torch.zeros(len(X))
-        visited = []
-        for s, a, s_next in self._predicted_steps(S, X):
-            ok = valid_actions(s, a, self.safety, self.ctx, S_next=s_next)
-            cost += (~ok).float()
-            visited.append(s_next)
-        # One batched reward call for all h * N predicted states.
-        r, _ = self.demo.reward(torch.stack(visited), window)  # (h, N)
-        discount = cfg.gamma ** torch.arange(cfg.horizon, dtype=r.dtype)
-        return (discount[:, None] * r).sum(0), cost
+        states = self._predicted_states(S, X)
+        bad = torch.zeros(cfg.horizon, len(X), dtype=torch.bool)
+        for v in self._violations(states, X).values():
+            bad |= v
+        cost = bad.sum(0).float()
+        scored = cost == 0 if cfg.use_cost else torch.ones(len(X), dtype=torch.bool)
+        reward = torch.full((len(X),), -float("inf"))
+        if scored.any():
+            # One batched reward call for all the h * n predicted states.
+            r, _ = self.demo.reward(states[1:, scored], window)  # (h, n)
+            discount = cfg.gamma ** torch.arange(cfg.horizon, dtype=r.dtype)
+            reward[scored] = (discount[:, None] * r).sum(0)
+        return reward, cost
 
     @torch.no_grad()
     def blocking_rules(self, S: torch.Tensor, X: torch.Tensor) -> dict[str, int]:
         """Number of sequences X (N, h, 6) from S that break each rule at some
         step of their predicted rollout."""
-        broken = {rule: torch.zeros(len(X), dtype=torch.bool) for rule in RULES}
-        for s, a, s_next in self._predicted_steps(S, X):
-            v = rule_violations(s, a, self.safety, self.ctx, S_next=s_next)
-            for rule in RULES:
-                broken[rule] |= v[rule]
-        return {rule: int(b.sum()) for rule, b in broken.items()}
+        v = self._violations(self._predicted_states(S, X), X)
+        return {rule: int(v[rule].any(0).sum()) for rule in RULES}
 
     @torch.no_grad()
     def solve(
@@ -375,8 +386,7 @@ class Mpc:
         mu = torch.zeros(cfg.horizon, 6)
         var = torch.full((cfg.horizon, 6), cfg.sigma0**2)
         best_r, best_a = -float("inf"), None
-        iterations = 0
-        t_iteration = time.perf_counter()
+        iterations, converged = 0, False
         while iterations < cfg.max_iterations:
             iterations += 1
             eps = mu + var.sqrt() * torch.randn(
@@ -399,13 +409,8 @@ class Mpc:
                 mu = (1 - cfg.beta) * mu + cfg.beta * elite.mean(0)
                 var = (1 - cfg.beta) * var + cfg.beta * elite.var(0, unbiased=False)
                 if var.sqrt().max() < cfg.tau_conv:
+                    converged = True
                     break
-            # Start another iteration only if it fits in the step's budget.
-            now = time.perf_counter()
-            last = now - t_iteration
-            t_iteration = now
-            if now - t0 + last > cfg.time_budget:
-                break
         feasible = best_a is not None
         action = best_a if feasible else torch.zeros(6)
         if feasible and cfg.execute == "mean":
@@ -421,5 +426,6 @@ class Mpc:
             best_r,
             J0,
             seconds,
+            converged=converged,
             blocked_by=None if feasible else self.blocking_rules(S, X),
         )

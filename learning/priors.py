@@ -19,11 +19,10 @@ from fabric_imitation.learning.errors import InputError
 from fabric_imitation.learning.geometry import (
     PinholeCamera,
     canonical_frame,
-    from_frame,
-    rotate_actions,
     to_frame,
 )
 from fabric_imitation.learning.models import KeypointNet, KeypointNetConfig, Mlp
+from fabric_imitation.learning.state import corner_indices
 
 CHECKPOINT_FORMAT = "fabric-imitation-priors"
 CHECKPOINT_VERSION = 2
@@ -137,34 +136,49 @@ class Priors:
         """f_D: next states (..., M, 3) after actions (..., 6)."""
         S = torch.as_tensor(S, dtype=torch.float32)
         A = torch.as_tensor(A, dtype=torch.float32)
-        Sc, origin, yaw = canonical_inputs(S)
-        Ac = rotate_actions(A, -yaw)
-        x = torch.cat(
-            [
-                self.norms["state"].encode(Sc.flatten(-2)),
-                self.norms["action"].encode(Ac),
-            ],
-            -1,
-        )
-        delta = self.norms["delta"].decode(self.f_D(x)).reshape(Sc.shape)
-        return from_frame(Sc + delta, origin, yaw)
+        c, s, ox, oy = _canonical(S)
+        Sc = _into(S, c, s, ox, oy)
+        Ac = _rotate_moves(A, c, -s)
+        x = torch.cat([Sc.flatten(-2), Ac], -1)
+        delta = self._folded("f_D")(x).reshape(Sc.shape)
+        return _out_of(Sc + delta, c, s, ox, oy)
 
     @torch.no_grad()
     def inverse(self, S, S_next) -> torch.Tensor:
         """f_I: actions (..., 6) that take S to S_next."""
         S = torch.as_tensor(S, dtype=torch.float32)
         S_next = torch.as_tensor(S_next, dtype=torch.float32)
-        Sc, origin, yaw = canonical_inputs(S)
-        Snc = to_frame(S_next, origin, yaw)
+        c, s, ox, oy = _canonical(S)
         x = torch.cat(
             [
-                self.norms["state"].encode(Sc.flatten(-2)),
-                self.norms["state"].encode(Snc.flatten(-2)),
+                _into(S, c, s, ox, oy).flatten(-2),
+                _into(S_next, c, s, ox, oy).flatten(-2),
             ],
             -1,
         )
-        Ac = self.norms["action"].decode(self.f_I(x))
-        return rotate_actions(Ac, yaw)
+        return _rotate_moves(self._folded("f_I")(x), c, s)
+
+    def _folded(self, name: str) -> "FoldedMlp":
+        """The MLP `name` with its input and output normalisers folded into
+        its first and last layers (the same function, fewer operations),
+        rebuilt whenever its weights have changed (training)."""
+        net = getattr(self, name)
+        key = tuple((id(p), p._version) for p in net.parameters())
+        cached = getattr(self, "_folded_cache", {}).get(name)
+        if cached is None or cached[0] != key:
+            inputs, output = {
+                "f_D": (("state", "action"), "delta"),
+                "f_I": (("state", "state"), "action"),
+            }[name]
+            mean = torch.cat(
+                [self.norms[inputs[0]].mean, self.norms[inputs[1]].mean], -1
+            )
+            std = torch.cat([self.norms[inputs[0]].std, self.norms[inputs[1]].std], -1)
+            folded = FoldedMlp(net, mean, std, self.norms[output])
+            self._folded_cache = getattr(self, "_folded_cache", {})
+            self._folded_cache[name] = (key, folded)
+            cached = self._folded_cache[name]
+        return cached[1]
 
     # --- checkpoint --------------------------------------------------------
 
@@ -198,6 +212,69 @@ class Priors:
                 "metadata": metadata,
             },
         )
+
+
+class FoldedMlp:
+    """An Mlp of (x - mean) / std whose output is decoded by `out`, as one
+    MLP with the normalisation folded into its first and last layers."""
+
+    def __init__(self, net: Mlp, mean, std, out: Normalizer):
+        linear = [m for m in net.net if isinstance(m, torch.nn.Linear)]
+        self.layers = [(m.weight.detach(), m.bias.detach()) for m in linear]
+        W, b = self.layers[0]
+        W = W / std
+        self.layers[0] = (W, b - W @ mean)
+        W, b = self.layers[-1]
+        self.layers[-1] = (W * out.std[:, None], b * out.std + out.mean)
+
+    def __call__(self, x: torch.Tensor) -> torch.Tensor:
+        *hidden, (W, b) = self.layers
+        for Wh, bh in hidden:
+            x = torch.nn.functional.linear(x, Wh, bh).relu_()
+        return torch.nn.functional.linear(x, W, b)
+
+
+def _canonical(S: torch.Tensor):
+    """Cosine, sine of the yaw and x, y of the origin (each (...)) of the
+    canonical frame of states S (..., M, 3) (geometry.canonical_frame's
+    frame, its yaw kept as the unit vector along s2 - s1)."""
+    idx = corner_indices(S.shape[-2])
+    s1, s2 = S[..., idx["s1"], :2], S[..., idx["s2"], :2]
+    o = (s1 + s2) / 2
+    d = s2 - s1
+    n = d.norm(dim=-1)
+    ok = n > 0
+    c = torch.where(ok, d[..., 0] / torch.where(ok, n, 1.0), 1.0)
+    s = torch.where(ok, d[..., 1] / torch.where(ok, n, 1.0), 0.0)
+    return c, s, o[..., 0], o[..., 1]
+
+
+def _into(P, c, s, ox, oy) -> torch.Tensor:
+    """Points (..., K, 3) into the frame (c, s, ox, oy) of `_canonical`."""
+    x = P[..., 0] - ox[..., None]
+    y = P[..., 1] - oy[..., None]
+    c, s = c[..., None], s[..., None]
+    return torch.stack([c * x + s * y, c * y - s * x, P[..., 2]], -1)
+
+
+def _out_of(P, c, s, ox, oy) -> torch.Tensor:
+    """Points (..., K, 3) from the frame (c, s, ox, oy) back to its parent."""
+    x, y = P[..., 0], P[..., 1]
+    cc, ss = c[..., None], s[..., None]
+    return torch.stack(
+        [cc * x - ss * y + ox[..., None], ss * x + cc * y + oy[..., None], P[..., 2]],
+        -1,
+    )
+
+
+def _rotate_moves(A, c, s) -> torch.Tensor:
+    """Actions (..., 6) (two moves) rotated by the yaw of (c, s)."""
+    m = A.reshape(*A.shape[:-1], 2, 3)
+    cc, ss = c[..., None], s[..., None]
+    x, y = m[..., 0], m[..., 1]
+    return torch.stack([cc * x - ss * y, ss * x + cc * y, m[..., 2]], -1).reshape(
+        A.shape
+    )
 
 
 def _batch_images(x) -> torch.Tensor:

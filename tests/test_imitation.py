@@ -320,7 +320,6 @@ def linear_goal_mpc(dynamics, model, **config) -> Mpc:
             horizon=3,
             elites=20,
             max_iterations=3,
-            time_budget=10.0,
             **config,
         ),
     )

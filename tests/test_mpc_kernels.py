@@ -1,0 +1,202 @@
+"""The MPC's fast paths against the reference code they replace: the
+compiled polygon IoU, the rules and rewards batched over every horizon
+step, f_D/f_I with their normalisers folded in."""
+
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+from fabric_imitation.learning import polygon_kernel
+from fabric_imitation.learning.demo_learning import DemoModel, RewardConfig
+from fabric_imitation.learning.mpc import Mpc, MpcConfig
+from fabric_imitation.learning.polygon import iou, iou_pairs
+from fabric_imitation.learning.safety import (
+    RULES,
+    SafetyConfig,
+    SafetyContext,
+    rule_violations,
+)
+
+
+def star_polygons(n, k, seed, *, spread=0.05):
+    """n simple (star-shaped, some concave) polygons of k vertices, half of
+    them clockwise."""
+    g = torch.Generator().manual_seed(seed)
+    ang = torch.sort(torch.rand(n, k, generator=g) * 2 * math.pi, -1).values
+    r = 0.15 * (0.3 + torch.rand(n, k, generator=g))
+    c = (torch.rand(n, 1, 2, generator=g) - 0.5) * spread
+    P = torch.stack([r * ang.cos(), r * ang.sin()], -1) + c
+    clockwise = torch.rand(n, generator=g) < 0.5
+    return torch.where(clockwise[:, None, None], P.flip(-2), P)
+
+
+def test_compiled_iou_matches_the_reference_on_random_polygons():
+    A, B = star_polygons(400, 8, 0), star_polygons(6, 8, 1)
+    ref = iou(A.double()[:, None], B.double()[None])
+    got = iou_pairs(A, B)
+    assert got.shape == (400, 6) and got.dtype == torch.float32
+    assert 0.05 < float(ref.mean()) < 0.95  # the batch overlaps partly
+    assert float((got.double() - ref).abs().max()) < 1e-6
+    # Disjoint, identical and nested polygons.
+    far = B + 10.0
+    assert float(iou_pairs(A[:5], far).abs().max()) == 0.0
+    # (1 and 1/4 up to polygon.SHIFT's generic offset of a few micrometres)
+    same = iou_pairs(B, B).diagonal()
+    assert float((same - 1).abs().max()) < 1e-3
+    assert float(iou_pairs(B[:1] * 0.5, B[:1])) == pytest.approx(0.25, abs=1e-3)
+    # Other vertex counts (polygons of 4 against 12).
+    A4, B12 = star_polygons(50, 4, 2), star_polygons(3, 12, 3)
+    ref = iou(A4.double()[:, None], B12.double()[None])
+    assert float((iou_pairs(A4, B12).double() - ref).abs().max()) < 1e-6
+
+
+def test_torch_fallback_gives_the_same_iou(monkeypatch):
+    A, B = star_polygons(100, 8, 4), star_polygons(6, 8, 5)
+    compiled = iou_pairs(A, B)
+    monkeypatch.setitem(polygon_kernel._LOADED, "kernel", None)
+    fallback = iou_pairs(A, B)
+    assert float((compiled - fallback).abs().max()) < 1e-6
+
+
+def test_the_kernel_is_built_once_into_the_cache(tmp_path, monkeypatch):
+    monkeypatch.setenv("FABRIC_IMITATION_CACHE", str(tmp_path))
+    monkeypatch.delitem(polygon_kernel._LOADED, "kernel", raising=False)
+    kernel = polygon_kernel.Load()
+    if kernel is None:
+        pytest.skip("no C compiler on this machine")
+    built = list(tmp_path.glob("polygon_kernel-*.so"))
+    assert len(built) == 1 and not list(tmp_path.glob("*.tmp"))
+    stamp = built[0].stat().st_mtime_ns
+    monkeypatch.delitem(polygon_kernel._LOADED, "kernel")
+    assert polygon_kernel.Load() is not None
+    assert built[0].stat().st_mtime_ns == stamp  # loaded, not rebuilt
+    with pytest.raises(ValueError, match="iou_pairs needs"):
+        iou_pairs(torch.zeros(3, 8), torch.zeros(2, 8, 2))
+
+
+class LinearDynamics:
+    """f_D: the grasped corners move with the grippers, the rest half as
+    much; f_I its inverse on the grasped corners."""
+
+    def forward(self, S, A):
+        move = torch.zeros_like(S)
+        move[..., 0, :] = A[..., None, :3][..., 0, :]
+        move[..., 2, :] = A[..., None, 3:][..., 0, :]
+        rest = (A[..., :3] + A[..., 3:])[..., None, :] / 4
+        move[..., [1, 3, 4, 5, 6, 7], :] = rest
+        return S + move
+
+    def inverse(self, S, S_next):
+        return torch.cat(
+            [S_next[..., 0, :] - S[..., 0, :], S_next[..., 2, :] - S[..., 2, :]], -1
+        )
+
+
+class ShiftRegistration:
+    def __call__(self, S, S_E):
+        T = (S_E - S).mean(-2)
+        return torch.zeros_like(T), T
+
+
+def cloth(y0=0.0, side=0.3, z=0.0):
+    h = side / 2
+    x = np.array([-h, 0, h, h, h, 0, -h, -h])
+    y = np.array([0, 0, 0, h, side, side, side, h]) + y0
+    return np.stack([x, y, np.full(8, z)], 1).astype(np.float32)
+
+
+def make_mpc(**safety):
+    demo = np.stack([cloth(0.1 - 0.03 * j, z=0.01 * j) for j in range(8)])
+    model = DemoModel(demo, ShiftRegistration(), RewardConfig())
+    ctx = SafetyContext(
+        edge_length=0.3,
+        workspace_lower=np.array([-0.4, -0.4, 0.0]),
+        workspace_upper=np.array([0.4, 0.5, 0.5]),
+        object_size=np.array([0.1, 0.1, 0.05]),
+        frame_pose=np.array([0.05, -0.1, 0.4]),
+        far_corners_may_hang=True,
+        side_length=0.3,
+    )
+    return Mpc(
+        dynamics=LinearDynamics(),
+        demo=model,
+        safety=SafetyConfig(tau_d_deg=95.0, **safety),
+        safety_ctx=ctx,
+        config=MpcConfig(num_samples=300, horizon=4, elites=30),
+    )
+
+
+def test_batched_rollout_matches_the_step_by_step_reference():
+    mpc = make_mpc()
+    S = torch.as_tensor(cloth(0.05, z=0.02))
+    g = torch.Generator().manual_seed(0)
+    pull = torch.tensor([0.0, -0.02, 0.0, 0.0, -0.02, 0.0])
+    X = mpc._clip(pull + 0.01 * torch.randn(300, 4, 6, generator=g))
+    window = mpc._window(1)
+    reward, cost = mpc.rollout(S, X, window)
+    # Reference: the rules one horizon step at a time, every sequence scored.
+    s = S.expand(len(X), *S.shape)
+    ref_cost = torch.zeros(len(X))
+    broken = {rule: torch.zeros(len(X), dtype=torch.bool) for rule in RULES}
+    visited = []
+    for k in range(4):
+        s_next = mpc._predict(s, X[:, k])
+        v = rule_violations(s, X[:, k], mpc.safety, mpc.ctx, S_next=s_next)
+        bad = torch.zeros(len(X), dtype=torch.bool)
+        for rule in RULES:
+            bad |= v[rule]
+            broken[rule] |= v[rule]
+        ref_cost += bad.float()
+        visited.append(s_next)
+        s = s_next
+    r, _ = mpc.demo.reward(torch.stack(visited), window)
+    ref_reward = (0.9 ** torch.arange(4.0)[:, None] * r).sum(0)
+    assert torch.equal(cost, ref_cost)
+    feasible = cost == 0
+    assert 0 < int(feasible.sum()) < len(X)  # both kinds in the batch
+    assert float((reward[feasible] - ref_reward[feasible]).abs().max()) < 1e-5
+    assert bool(torch.isinf(reward[~feasible]).all())  # never scored
+    assert mpc.blocking_rules(S, X) == {k: int(b.sum()) for k, b in broken.items()}
+
+
+def test_folded_priors_match_the_normalised_networks():
+    import fabric_imitation.learning as learning
+    from fabric_imitation.learning.geometry import (
+        from_frame,
+        rotate_actions,
+        to_frame,
+    )
+    from fabric_imitation.learning.priors import canonical_inputs, load_priors
+
+    p = load_priors(Path(learning.__file__).parent / "priors" / "default")
+    g = torch.Generator().manual_seed(0)
+    S = torch.rand(200, 8, 3, generator=g) * 0.3
+    A = (torch.rand(200, 6, generator=g) - 0.5) * 0.06
+    with torch.no_grad():
+        Sc, origin, yaw = canonical_inputs(S)
+        x = torch.cat(
+            [
+                p.norms["state"].encode(Sc.flatten(-2)),
+                p.norms["action"].encode(rotate_actions(A, -yaw)),
+            ],
+            -1,
+        )
+        delta = p.norms["delta"].decode(p.f_D(x)).reshape(Sc.shape)
+        S_next = from_frame(Sc + delta, origin, yaw)
+        x = torch.cat(
+            [
+                p.norms["state"].encode(Sc.flatten(-2)),
+                p.norms["state"].encode(to_frame(S_next, origin, yaw).flatten(-2)),
+            ],
+            -1,
+        )
+        A_back = rotate_actions(p.norms["action"].decode(p.f_I(x)), yaw)
+    assert float((p.forward(S, A) - S_next).abs().max()) < 1e-5
+    assert float((p.inverse(S, S_next) - A_back).abs().max()) < 1e-5
+    # Training changes the weights: the folded copy follows.
+    with torch.no_grad():
+        p.f_D.net[0].bias.add_(0.1)
+    changed = p.forward(S, A)
+    assert float((changed - S_next).abs().max()) > 1e-3
