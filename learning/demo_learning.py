@@ -7,11 +7,18 @@ the final state S_E[T - 1].
 """
 
 import dataclasses as dc
+import hashlib
 import math
+import os
+import pickle
+import tempfile
 import time
+from pathlib import Path
 
 import numpy as np
 import torch
+from fabric_imitation.learning import models as models_module
+from fabric_imitation.learning.cache import CacheDir
 from fabric_imitation.learning.models import Mlp
 from fabric_imitation.learning.polygon import iou_pairs
 from fabric_imitation.learning.state import corner_indices
@@ -302,27 +309,106 @@ class DemoModel:
         return (last_iou > self.config.tau_i) & (J == self.T - 1)
 
 
+# f_A's training inputs besides the states (RewardConfig fields).
+REGISTRATION_FIELDS = (
+    "registration_steps",
+    "registration_batch",
+    "registration_lr",
+    "source_shift",
+    "source_yaw_deg",
+    "seed",
+)
+
+
+def RegistrationKey(demo_states, prior_states, cfg: RewardConfig) -> str:
+    """Checksum of everything f_A's training depends on: the demo's and the
+    prior's states, the training settings, the code that trains it, the
+    torch version and its thread count: a cached f_A is what training here
+    and now would give."""
+    h = hashlib.sha256()
+    for states in (demo_states, prior_states):
+        a = np.ascontiguousarray(np.asarray(states, dtype=np.float32))
+        h.update(str(a.shape).encode() + a.tobytes())
+    h.update(repr([getattr(cfg, f) for f in REGISTRATION_FIELDS]).encode())
+    for module in (__file__, models_module.__file__):
+        h.update(Path(module).read_bytes())
+    # The thread count too: it changes the rounding of the training's sums.
+    h.update(f"{torch.__version__} {torch.get_num_threads()}".encode())
+    return h.hexdigest()[:24]
+
+
 def learn_from_demo(
     demo_states: np.ndarray,
     prior_states: np.ndarray,
     config: RewardConfig | None = None,
+    *,
+    cache: bool = True,
 ) -> tuple[DemoModel, dict]:
     """Builds the demo model: trains f_A with prior states (moved around the
     demo) as sources and the demo's states as targets. Returns the model and
-    a summary (training time, final alignment error)."""
+    a summary (training time, final alignment error, whether f_A came from
+    the cache).
+
+    With `cache`, f_A's weights are kept in the project's cache
+    (learning/cache.py) under `RegistrationKey`, so the same demo and
+    priors are registered once per machine; a cached f_A is the trained one,
+    weight for weight."""
     cfg = config or RewardConfig()
+    # f_A's initial weights come from torch's global stream, seeded here;
+    # a cached f_A leaves that stream where training would.
     torch.manual_seed(cfg.seed)
     t0 = time.perf_counter()
     targets = torch.as_tensor(np.asarray(demo_states), dtype=torch.float32)
+    f_A = Registration(targets.shape[-2])
+    path = None
+    if cache:
+        key = RegistrationKey(demo_states, prior_states, cfg)
+        path = CacheDir() / f"registration-{key}.pt"
+        if path.is_file():
+            try:
+                saved = torch.load(path, weights_only=True)
+                f_A.net.load_state_dict(saved["net"])
+                f_A.net.eval()
+                model = DemoModel(targets.numpy(), f_A, cfg)
+                return model, {
+                    "registration_seconds": round(time.perf_counter() - t0, 2),
+                    "registration_final_loss": saved["final_loss"],
+                    "registration_cached": True,
+                }
+            except (
+                OSError,
+                RuntimeError,
+                KeyError,
+                ValueError,
+                pickle.UnpicklingError,
+            ):
+                pass  # unreadable: trained again and written over
     gen = torch.Generator().manual_seed(cfg.seed)
     around = targets[..., :2].reshape(-1, 2).mean(0)
     sources = jitter_states(
         torch.as_tensor(np.asarray(prior_states), dtype=torch.float32), around, cfg, gen
     )
-    f_A = Registration(targets.shape[-2])
     losses = f_A.fit(sources, targets, cfg)
+    final_loss = round(float(np.mean(losses[-50:])), 6)
+    if path is not None:
+        _save_atomically({"net": f_A.net.state_dict(), "final_loss": final_loss}, path)
     model = DemoModel(targets.numpy(), f_A, cfg)
     return model, {
         "registration_seconds": round(time.perf_counter() - t0, 2),
-        "registration_final_loss": round(float(np.mean(losses[-50:])), 6),
+        "registration_final_loss": final_loss,
+        "registration_cached": False,
     }
+
+
+def _save_atomically(obj, path: Path) -> None:
+    """torch.save to a temporary file renamed into place: concurrent workers
+    never read half a file."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, suffix=".tmp")
+    os.close(fd)
+    try:
+        torch.save(obj, tmp)
+        os.replace(tmp, path)
+    finally:
+        if os.path.exists(tmp):
+            os.unlink(tmp)

@@ -2,8 +2,7 @@
 machine with the system's C compiler into a cache and loaded with ctypes.
 
 The shared library is named by a checksum of the source, the compiler
-command and the platform, in `$FABRIC_IMITATION_CACHE` (default
-`~/.cache/fabric-imitation`, or `$XDG_CACHE_HOME/fabric-imitation`), so a
+command and the platform, in the project's cache (learning/cache.py), so a
 changed source builds a new one and nothing is rebuilt otherwise. Building
 takes well under a second. Without a compiler (`$CC`, default `cc`) `Load`
 returns None once with a warning, and callers use the torch code instead.
@@ -20,6 +19,7 @@ import tempfile
 from pathlib import Path
 
 import torch
+from fabric_imitation.learning.cache import CacheDir
 
 SOURCE = Path(__file__).with_name("polygon_kernel.c")
 # No -march=native: a cache shared by machines of one platform must run on
@@ -29,14 +29,6 @@ FLAGS = ["-O3", "-shared", "-fPIC", "-ffp-contract=off", "-std=c99"]
 
 _log = logging.getLogger(__name__)
 _LOADED: dict[str, object] = {}
-
-
-def CacheDir() -> Path:
-    """Where compiled artefacts of this project are kept on this machine."""
-    if os.environ.get("FABRIC_IMITATION_CACHE"):
-        return Path(os.environ["FABRIC_IMITATION_CACHE"])
-    base = os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache"
-    return Path(base) / "fabric-imitation"
 
 
 def _build(cc: str, target: Path) -> None:

@@ -200,3 +200,33 @@ def test_folded_priors_match_the_normalised_networks():
         p.f_D.net[0].bias.add_(0.1)
     changed = p.forward(S, A)
     assert float((changed - S_next).abs().max()) > 1e-3
+
+
+def test_registration_is_cached_per_demo_and_priors(tmp_path, monkeypatch):
+    from fabric_imitation.learning.demo_learning import learn_from_demo
+
+    monkeypatch.setenv("FABRIC_IMITATION_CACHE", str(tmp_path))
+    demo = np.stack([cloth(0.1 - 0.03 * j, z=0.01 * j) for j in range(6)])
+    prior = np.stack([cloth(0.02 * j) for j in range(20)])
+    cfg = RewardConfig(registration_steps=20, registration_batch=16)
+    fresh, info = learn_from_demo(demo, prior, cfg)
+    assert info["registration_cached"] is False
+    again, info = learn_from_demo(demo, prior, cfg)
+    assert info["registration_cached"] is True
+    for a, b in zip(
+        fresh.f_A.net.state_dict().values(),
+        again.f_A.net.state_dict().values(),
+        strict=True,
+    ):
+        assert torch.equal(a, b)
+    # Another demo is registered anew; a corrupt entry is trained over.
+    _, info = learn_from_demo(demo[:-1], prior, cfg)
+    assert info["registration_cached"] is False
+    (entry,) = [p for p in tmp_path.glob("registration-*.pt")][:1]
+    for p in tmp_path.glob("registration-*.pt"):
+        p.write_bytes(b"not a checkpoint")
+    _, info = learn_from_demo(demo, prior, cfg)
+    assert info["registration_cached"] is False
+    _, info = learn_from_demo(demo, prior, cfg, cache=False)
+    assert info["registration_cached"] is False
+    assert entry.exists() and not list(tmp_path.glob("*.tmp"))
