@@ -110,6 +110,8 @@ class MpcResult:
     # The paper's convergence test held (a feasible elite and the noise's
     # largest standard deviation below tau_conv) before the iteration cap.
     converged: bool = False
+    # [s] each sampling iteration's duration (measured, never decides).
+    iteration_seconds: list[float] = dc.field(default_factory=list)
     # When infeasible: how many of the last iteration's sampled sequences
     # break each safety rule at some step (which rule blocked the step).
     blocked_by: dict[str, int] | None = None
@@ -327,6 +329,7 @@ class Mpc:
             self.ctx = dc.replace(self.ctx, direction_margin_deg=margin)
         again.seconds += result.seconds
         again.iterations += result.iterations
+        again.iteration_seconds = result.iteration_seconds + again.iteration_seconds
         again.margin_dropped = True
         return again
 
@@ -387,8 +390,10 @@ class Mpc:
         var = torch.full((cfg.horizon, 6), cfg.sigma0**2)
         best_r, best_a = -float("inf"), None
         iterations, converged = 0, False
+        iteration_seconds = []
         while iterations < cfg.max_iterations:
             iterations += 1
+            t_iteration = time.perf_counter()
             eps = mu + var.sqrt() * torch.randn(
                 cfg.num_samples, cfg.horizon, 6, generator=gen
             )
@@ -408,9 +413,10 @@ class Mpc:
                 elite = eps[r.topk(k).indices]
                 mu = (1 - cfg.beta) * mu + cfg.beta * elite.mean(0)
                 var = (1 - cfg.beta) * var + cfg.beta * elite.var(0, unbiased=False)
-                if var.sqrt().max() < cfg.tau_conv:
-                    converged = True
-                    break
+                converged = bool(var.sqrt().max() < cfg.tau_conv)
+            iteration_seconds.append(time.perf_counter() - t_iteration)
+            if converged:
+                break
         feasible = best_a is not None
         action = best_a if feasible else torch.zeros(6)
         if feasible and cfg.execute == "mean":
@@ -427,5 +433,6 @@ class Mpc:
             J0,
             seconds,
             converged=converged,
+            iteration_seconds=iteration_seconds,
             blocked_by=None if feasible else self.blocking_rules(S, X),
         )

@@ -230,3 +230,44 @@ def test_registration_is_cached_per_demo_and_priors(tmp_path, monkeypatch):
     _, info = learn_from_demo(demo, prior, cfg, cache=False)
     assert info["registration_cached"] is False
     assert entry.exists() and not list(tmp_path.glob("*.tmp"))
+
+
+def _spin():
+    while True:
+        pass
+
+
+@pytest.mark.slow
+def test_the_same_seed_gives_the_same_actions_idle_and_under_load():
+    """box with the shipped priors, demo and settings: 10 control steps
+    idle, then again with another process keeping a core busy; the
+    iteration count, never the clock, decides, so every action is equal."""
+    import multiprocessing as mp
+    import time
+
+    from fabric_imitation.tools.bench import _PreparedMpc
+
+    torch.set_num_threads(1)
+    _, mpc, states = _PreparedMpc("box", None, None, 500, 5)
+    rng = np.random.default_rng(1)
+    starts = [states[k] + rng.normal(0, 0.01, states[k].shape) for k in range(10)]
+
+    def actions():
+        return [
+            mpc.solve(torch.as_tensor(S, dtype=torch.float32), step=k, seed=3)
+            for k, S in enumerate(starts)
+        ]
+
+    idle = actions()
+    busy = mp.get_context("spawn").Process(target=_spin, daemon=True)
+    busy.start()
+    try:
+        time.sleep(0.5)
+        loaded = actions()
+    finally:
+        busy.terminate()
+        busy.join()
+    assert all(r.feasible for r in idle)
+    for a, b in zip(idle, loaded, strict=True):
+        assert torch.equal(a.action, b.action)
+        assert a.iterations == b.iterations

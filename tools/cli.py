@@ -652,23 +652,36 @@ def _bench_train(args) -> dict:
 
 
 def _add_bench_mpc(p):
-    p.add_argument("--scenario", default="box", help="task whose shipped demo is used")
+    p.add_argument(
+        "--scenarios",
+        nargs="+",
+        default=["box", "hang", "box_big"],
+        help="tasks whose shipped demos are used (default: box hang box_big)",
+    )
     p.add_argument("--priors", type=Path, default=None)
-    p.add_argument("--demo", type=Path, default=None)
+    p.add_argument("--demo", type=Path, default=None, help="with one scenario")
     p.add_argument("--steps", type=int, default=40, help="control steps timed")
     p.add_argument("--out", type=Path, default=None, help="also write the JSON here")
 
 
 @command("bench mpc")(_add_bench_mpc)
 def _bench_mpc(args) -> dict:
+    from fabric_imitation.scenarios.loader import LoadScenario
     from fabric_imitation.tools.bench import BenchMpc
 
+    if args.demo is not None and len(args.scenarios) != 1:
+        raise InputError("--demo needs exactly one --scenarios name")
+    for name in args.scenarios:
+        LoadScenario(scenario_name=name)  # an unknown name fails here, at once
+    if args.steps < 1:
+        raise InputError(f"--steps must be at least 1, got {args.steps}")
     return BenchMpc(
-        scenario_name=args.scenario,
+        scenario_names=args.scenarios,
         priors_dir=args.priors,
         demo_dir=args.demo,
         steps=args.steps,
         out=args.out,
+        progress=True,
     )
 
 
