@@ -150,9 +150,9 @@ class Mpc:
 
     @torch.no_grad()
     def WarmUp(self, S) -> None:
-        """Runs one rollout of the real size so that the compiled IoU is built
-        before the first control step (part of the demo-to-first-action time,
-        not of a control step)."""
+        """Runs one rollout of the real size so that the IoU kernel is built
+        (or loaded) before the first control step (part of the demo to first
+        action time, not of a control step)."""
         cfg = self.config
         S = torch.as_tensor(S, dtype=torch.float32)
         X = torch.zeros(cfg.num_samples, cfg.horizon, 6)

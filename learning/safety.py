@@ -215,9 +215,10 @@ def rule_violations(
 
     out["direction"] = bad_direction(a_l, s1 - s3) | bad_direction(a_r, s2 - s4)
     if ctx.far_corners_may_hang:
+        floor3, floor4 = _surface_below(s3, ctx), _surface_below(s4, ctx)
         for fraction in (0.5, 1.0):
-            s3d = _dropped(s3, fraction, ctx)
-            s4d = _dropped(s4, fraction, ctx)
+            s3d = _dropped(s3, fraction, ctx, floor3)
+            s4d = _dropped(s4, fraction, ctx, floor4)
             out["direction"] = (
                 out["direction"]
                 | bad_direction(a_l, s1 - s3d, cos_hidden)
@@ -287,27 +288,44 @@ def _outside_workspace(S, A, S_next, grippers, ctx: SafetyContext) -> torch.Tens
         points = torch.cat(
             [S_next, grippers.expand(*S_next.shape[:-2], *grippers.shape[-2:])], -2
         )
+    px, py, pz = points[..., 0], points[..., 1], points[..., 2]
     if ctx.frame_pose is not None:
         x, y, yaw = (float(v) for v in ctx.frame_pose)
         c, s = math.cos(yaw), math.sin(yaw)
-        R = torch.tensor(
-            [[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]], dtype=points.dtype
-        )
-        points = points @ R.T + torch.tensor([x, y, 0.0], dtype=points.dtype)
-    outside = ((points < lo) | (points > hi)).any(-1).any(-1)
+        px, py = c * px - s * py + x, s * px + c * py + y
+    outside = (
+        (px < lo[0])
+        | (px > hi[0])
+        | (py < lo[1])
+        | (py > hi[1])
+        | (pz < lo[2])
+        | (pz > hi[2])
+    ).any(-1)
     # Grippers never go below the table top.
     return outside | (grippers[..., 2] < 0.0).any(-1)
 
 
-def _dropped(p: torch.Tensor, fraction: float, ctx: SafetyContext) -> torch.Tensor:
-    """Points p (..., 3) moved down by `fraction` of their height above the
-    surface under them: the object's top inside its footprint, else the
-    table (z = 0); frame: the object frame."""
+def _surface_below(p: torch.Tensor, ctx: SafetyContext) -> torch.Tensor:
+    """Height (...) of the surface under points p (..., 3): the object's top
+    inside its footprint, else the table (z = 0); frame: the object frame."""
     floor = torch.zeros_like(p[..., 2])
     if ctx.object_size is not None:
         half = torch.as_tensor(ctx.object_size, dtype=p.dtype) / 2
         over = (p[..., 0].abs() < half[0]) & (p[..., 1].abs() < half[1])
         floor = torch.where(over, 2 * half[2], floor)
+    return floor
+
+
+def _dropped(
+    p: torch.Tensor,
+    fraction: float,
+    ctx: SafetyContext,
+    floor: torch.Tensor | None = None,
+) -> torch.Tensor:
+    """Points p (..., 3) moved down by `fraction` of their height above the
+    surface under them (`_surface_below`, or `floor` where given)."""
+    if floor is None:
+        floor = _surface_below(p, ctx)
     z = p[..., 2] - fraction * (p[..., 2] - floor).clamp_min(0.0)
     return torch.cat([p[..., :2], z[..., None]], -1)
 

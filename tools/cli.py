@@ -57,7 +57,7 @@ DESCRIPTIONS = {
     "bench sim": "Real-time factors of the cloth engines per phase.",
     "bench collect": "Collection rate with 1 and 2 workers.",
     "bench train": "Training throughput.",
-    "bench mpc": "MPC control-step latency, idle and with one core loaded.",
+    "bench mpc": "MPC iterations and control steps, idle and with one core loaded.",
     "bench occlusion": "f_R's keypoint error as more of the fabric is hidden "
     "(grippers, partial masks), on the shipped demos' frames.",
     "report": "Build the evaluation's tables and figures (success with Wilson "
@@ -887,7 +887,7 @@ def _stdout_for_summary_only(verbose: bool = False):
 
 
 def main(argv: list[str] | None = None) -> int:
-    # torch.compile imports torch's C++ extension helper, which warns on every
+    # torch's C++ extension helper, imported by parts of torch, warns on every
     # run that a machine without CUDA has no CUDA runtime; nothing here uses it.
     logging.getLogger("torch.utils.cpp_extension").setLevel(logging.ERROR)
     parser = _build_parser()

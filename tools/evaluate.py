@@ -193,7 +193,7 @@ def _set_prepared(prepared: dict) -> None:
 
     import torch
 
-    # As in the CLI: no CUDA warning from torch.compile in each worker.
+    # As in the CLI: no CUDA warning from torch's extension helper in each worker.
     logging.getLogger("torch.utils.cpp_extension").setLevel(logging.ERROR)
 
     torch.set_num_threads(1)
