@@ -33,6 +33,11 @@ CHECKPOINT_VERSION = 2
 CHECKPOINT_JSON = "priors.json"
 CHECKPOINT_FILE = "priors.pt"
 HEIGHT_SCALE = 4.0  # the height channel is metres * HEIGHT_SCALE
+# Network -> (the normalisers of its two inputs, of its output).
+FOLDED_NORMS = {
+    "f_D": (("state", "action"), "delta"),
+    "f_I": (("state", "state"), "action"),
+}
 
 
 @dc.dataclass
@@ -85,6 +90,8 @@ class Priors:
         self.f_R, self.f_D, self.f_I = f_R.eval(), f_D.eval(), f_I.eval()
         self.norms = norms
         self.camera = camera
+        # name -> (the weights' versions, FoldedMlp): see `_folded`.
+        self._folded_cache: dict[str, tuple] = {}
 
     @property
     def num_keypoints(self) -> int:
@@ -164,20 +171,13 @@ class Priors:
         rebuilt whenever its weights have changed (training)."""
         net = getattr(self, name)
         key = tuple((id(p), p._version) for p in net.parameters())
-        cached = getattr(self, "_folded_cache", {}).get(name)
+        cached = self._folded_cache.get(name)
         if cached is None or cached[0] != key:
-            inputs, output = {
-                "f_D": (("state", "action"), "delta"),
-                "f_I": (("state", "state"), "action"),
-            }[name]
-            mean = torch.cat(
-                [self.norms[inputs[0]].mean, self.norms[inputs[1]].mean], -1
-            )
-            std = torch.cat([self.norms[inputs[0]].std, self.norms[inputs[1]].std], -1)
-            folded = FoldedMlp(net, mean, std, self.norms[output])
-            self._folded_cache = getattr(self, "_folded_cache", {})
-            self._folded_cache[name] = (key, folded)
-            cached = self._folded_cache[name]
+            inputs, output = FOLDED_NORMS[name]
+            mean = torch.cat([self.norms[k].mean for k in inputs], -1)
+            std = torch.cat([self.norms[k].std for k in inputs], -1)
+            cached = (key, FoldedMlp(net, mean, std, self.norms[output]))
+            self._folded_cache[name] = cached
         return cached[1]
 
     # --- checkpoint --------------------------------------------------------
