@@ -343,12 +343,9 @@ class TcnMpc(Mpc):
     def rollout(self, S, X, window):
         cfg = self.config
         states = self._predicted_states(S, X)
-        bad = torch.zeros(cfg.horizon, len(X), dtype=torch.bool)
-        for v in self._violations(states, X).values():
-            bad |= v
         reward = torch.zeros(len(X))
         for i in range(cfg.horizon):
             goal = self._aligned(i)
             z = self.b.tcn_embed(torch.cat([states[i + 1], goal[None]]), S)
             reward -= cfg.gamma**i * (z[:-1] - z[-1]).norm(dim=-1)
-        return reward, bad.sum(0).float()
+        return reward, self._cost(states, X)

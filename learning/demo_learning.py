@@ -6,19 +6,18 @@ Indices are 0-based here: J in 0..T-1, the subgoal is S_E[min(J + 1, T - 1)],
 the final state S_E[T - 1].
 """
 
+import copy
 import dataclasses as dc
 import hashlib
 import math
-import os
-import pickle
-import tempfile
+import platform
 import time
 from pathlib import Path
 
 import numpy as np
 import torch
 from fabric_imitation.learning import models as models_module
-from fabric_imitation.learning.cache import CacheDir
+from fabric_imitation.learning.cache import cache_dir, read_torch, write_torch
 from fabric_imitation.learning.models import Mlp
 from fabric_imitation.learning.polygon import iou_pairs
 from fabric_imitation.learning.state import corner_indices
@@ -329,11 +328,12 @@ REGISTRATION_FIELDS = (
 )
 
 
-def RegistrationKey(demo_states, prior_states, cfg: RewardConfig) -> str:
+def registration_key(demo_states, prior_states, cfg: RewardConfig) -> str:
     """Checksum of everything f_A's training depends on: the demo's and the
     prior's states, the training settings, the code that trains it, the
-    torch version and its thread count: a cached f_A is what training here
-    and now would give."""
+    torch version, its thread count and the CPU's instruction set (both
+    change the rounding of the training's sums): a cached f_A is what
+    training here and now would give."""
     h = hashlib.sha256()
     for states in (demo_states, prior_states):
         a = np.ascontiguousarray(np.asarray(states, dtype=np.float32))
@@ -341,8 +341,16 @@ def RegistrationKey(demo_states, prior_states, cfg: RewardConfig) -> str:
     h.update(repr([getattr(cfg, f) for f in REGISTRATION_FIELDS]).encode())
     for module in (__file__, models_module.__file__):
         h.update(Path(module).read_bytes())
-    # The thread count too: it changes the rounding of the training's sums.
-    h.update(f"{torch.__version__} {torch.get_num_threads()}".encode())
+    h.update(
+        " ".join(
+            [
+                torch.__version__,
+                str(torch.get_num_threads()),
+                torch.backends.cpu.get_cpu_capability(),
+                platform.machine(),
+            ]
+        ).encode()
+    )
     return h.hexdigest()[:24]
 
 
@@ -371,27 +379,16 @@ def learn_from_demo(
     f_A = Registration(targets.shape[-2])
     path = None
     if cache:
-        key = RegistrationKey(demo_states, prior_states, cfg)
-        path = CacheDir() / f"registration-{key}.pt"
-        if path.is_file():
-            try:
-                saved = torch.load(path, weights_only=True)
-                f_A.net.load_state_dict(saved["net"])
-                f_A.net.eval()
-                model = DemoModel(targets.numpy(), f_A, cfg)
-                return model, {
-                    "registration_seconds": round(time.perf_counter() - t0, 2),
-                    "registration_final_loss": saved["final_loss"],
-                    "registration_cached": True,
-                }
-            except (
-                OSError,
-                RuntimeError,
-                KeyError,
-                ValueError,
-                pickle.UnpicklingError,
-            ):
-                pass  # unreadable: trained again and written over
+        key = registration_key(demo_states, prior_states, cfg)
+        path = cache_dir() / f"registration-{key}.pt"
+        cached = _cached_registration(path, f_A)
+        if cached is not None:
+            f_A, final_loss = cached
+            return DemoModel(targets.numpy(), f_A, cfg), {
+                "registration_seconds": round(time.perf_counter() - t0, 2),
+                "registration_final_loss": final_loss,
+                "registration_cached": True,
+            }
     gen = torch.Generator().manual_seed(cfg.seed)
     around = targets[..., :2].reshape(-1, 2).mean(0)
     sources = jitter_states(
@@ -400,7 +397,7 @@ def learn_from_demo(
     losses = f_A.fit(sources, targets, cfg)
     final_loss = round(float(np.mean(losses[-50:])), 6)
     if path is not None:
-        _save_atomically({"net": f_A.net.state_dict(), "final_loss": final_loss}, path)
+        write_torch(path, {"net": f_A.net.state_dict(), "final_loss": final_loss})
     model = DemoModel(targets.numpy(), f_A, cfg)
     return model, {
         "registration_seconds": round(time.perf_counter() - t0, 2),
@@ -409,15 +406,19 @@ def learn_from_demo(
     }
 
 
-def _save_atomically(obj, path: Path) -> None:
-    """torch.save to a temporary file renamed into place: concurrent workers
-    never read half a file."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, suffix=".tmp")
-    os.close(fd)
+def _cached_registration(
+    path: Path, fresh: Registration
+) -> tuple[Registration, float] | None:
+    """(f_A with the weights cached at `path`, its final training loss), or
+    None where the entry is missing or does not fit; `fresh` is left as it
+    was either way."""
+    saved = read_torch(path)
+    if saved is None or not isinstance(saved.get("final_loss"), float):
+        return None
+    f_A = copy.deepcopy(fresh)
     try:
-        torch.save(obj, tmp)
-        os.replace(tmp, path)
-    finally:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
+        f_A.net.load_state_dict(saved["net"])
+    except (KeyError, RuntimeError, TypeError, AttributeError):
+        return None
+    f_A.net.eval()
+    return f_A, saved["final_loss"]

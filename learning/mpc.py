@@ -22,6 +22,7 @@ from typing import Protocol
 
 import numpy as np
 import torch
+from fabric_imitation.learning import polygon_kernel
 from fabric_imitation.learning.demo_learning import DemoModel
 from fabric_imitation.learning.safety import (
     RULES,
@@ -50,7 +51,7 @@ class MpcConfig:
     beta: float = 0.7  # update rate of (mu, Sigma)
     sigma0: float = 0.01  # initial noise std [m]
     tau_conv: float = 0.002  # converged when max std is below [m]
-    max_iterations: int = 4
+    max_iterations: int = 4  # sampling iterations per step at most (a count)
     gamma: float = 0.9
     # Ablations (paper Table I): no_mpc applies f_I's action; no_prior samples
     # around zero; no_cost ignores the constraint cost.
@@ -108,7 +109,7 @@ class MpcResult:
     progress: int
     seconds: float
     # The paper's convergence test held (a feasible elite and the noise's
-    # largest standard deviation below tau_conv) before the iteration cap.
+    # largest standard deviation below tau_conv) at or before the cap.
     converged: bool = False
     # [s] each sampling iteration's duration (measured, never decides).
     iteration_seconds: list[float] = dc.field(default_factory=list)
@@ -154,6 +155,7 @@ class Mpc:
         (or loaded) before the first control step (part of the demo to first
         action time, not of a control step)."""
         cfg = self.config
+        polygon_kernel.load()  # even where no sequence below gets scored
         S = torch.as_tensor(S, dtype=torch.float32)
         X = torch.zeros(cfg.num_samples, cfg.horizon, 6)
         self.rollout(S, X, self._window(0))
@@ -266,6 +268,14 @@ class Mpc:
             states[:-1], X.transpose(0, 1), self.safety, self.ctx, S_next=states[1:]
         )
 
+    def _cost(self, states: torch.Tensor, X: torch.Tensor) -> torch.Tensor:
+        """The paper's constraint cost (N,): how many steps of each sequence
+        X (N, h, 6), with predicted states (h + 1, N, M, 3), break a rule."""
+        bad = torch.zeros(X.shape[1], len(X), dtype=torch.bool)
+        for v in self._violations(states, X).values():
+            bad |= v
+        return bad.sum(0).float()
+
     @torch.no_grad()
     def rollout(self, S: torch.Tensor, X: torch.Tensor, window):
         """Discounted rewards (N,) and violation counts (N,) of sequences X.
@@ -274,10 +284,7 @@ class Mpc:
         scored (the others' reward, never used, is -inf)."""
         cfg = self.config
         states = self._predicted_states(S, X)
-        bad = torch.zeros(cfg.horizon, len(X), dtype=torch.bool)
-        for v in self._violations(states, X).values():
-            bad |= v
-        cost = bad.sum(0).float()
+        cost = self._cost(states, X)
         scored = cost == 0 if cfg.use_cost else torch.ones(len(X), dtype=torch.bool)
         reward = torch.full((len(X),), -float("inf"))
         if scored.any():

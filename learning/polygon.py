@@ -99,18 +99,23 @@ def iou_pairs(A: torch.Tensor, B: torch.Tensor) -> torch.Tensor:
     of B (W, L, 2): `iou`'s algorithm, in double precision, by the compiled
     kernel of `polygon_kernel.c` (about 20x faster than `iou` in torch for
     the MPC's thousands of pairs), or by `iou` in float64 where no C compiler
-    is found. Both agree with `iou` in float64 to 1e-6."""
+    is found (or for polygons of more than polygon_kernel.MAX_VERTICES
+    vertices). Both agree with `iou` in float64 to 1e-6."""
     if A.dim() != 3 or B.dim() != 3 or A.shape[-1] != 2 or B.shape[-1] != 2:
         raise ValueError(
             f"iou_pairs needs (P, K, 2) and (W, L, 2), got {tuple(A.shape)} "
             f"and {tuple(B.shape)}"
         )
-    kernel = polygon_kernel.Load()
-    if kernel is None:
+    kernel = polygon_kernel.load()
+    sizes_ok = all(
+        3 <= n <= polygon_kernel.MAX_VERTICES for n in (A.shape[1], B.shape[1])
+    )
+    if kernel is None or not sizes_ok or A.is_cuda or B.is_cuda:
         out = iou(A.double()[:, None], B.double()[None])
         return out.float()
     a = A.detach().to(torch.float32).contiguous()
     b = B.detach().to(torch.float32).contiguous()
     out = torch.empty(len(a), len(b), dtype=torch.float32)
-    kernel(a, b, SHIFT, out)
+    if len(a) and len(b):
+        kernel(a, b, SHIFT, out)
     return out

@@ -1,9 +1,9 @@
 /* Intersection over union of every polygon of A with every polygon of B:
  * the algorithm of polygon.py's `intersection_area` (Green's theorem along
  * both boundaries, crossings computed once for both), one pair at a time in
- * double precision. Built by polygon.py with the system's C compiler and
- * called through ctypes; polygon.py's torch code is the reference and the
- * fallback.
+ * double precision. Built by polygon_kernel.py with the system's C compiler
+ * and called through ctypes; polygon.py's torch code is the reference and
+ * the fallback.
  *
  * a: (P, K, 2) float32, b: (W, L, 2) float32, out: (P, W) float32;
  * shift: the generic offset added to B (polygon.SHIFT).
@@ -131,6 +131,7 @@ static double intersection(const double *ax, const double *ay, int K,
 int iou_all_pairs(const float *a, int64_t P, int K, const float *b, int64_t W,
                   int L, double shift_x, double shift_y, float *out) {
     if (K > MAX_VERTICES || L > MAX_VERTICES || K < 3 || L < 3) return 1;
+    if (P == 0 || W == 0) return 0;
     double *bx = malloc(sizeof(double) * W * L), *by = malloc(sizeof(double) * W * L);
     double *b_area = malloc(sizeof(double) * W);
     if (!bx || !by || !b_area) {
@@ -147,7 +148,9 @@ int iou_all_pairs(const float *a, int64_t P, int K, const float *b, int64_t W,
         for (int64_t w = 0; w < W; ++w) {
             double inter = intersection(ax, ay, K, bx + L * w, by + L * w, L);
             double uni = a_area + b_area[w] - inter;
-            out[p * W + w] = (float)(inter / (uni > 1e-12 ? uni : 1e-12));
+            /* As torch's clamp_min: a NaN union stays NaN. */
+            double den = isnan(uni) ? uni : (uni > 1e-12 ? uni : 1e-12);
+            out[p * W + w] = (float)(inter / den);
         }
     }
     free(bx);

@@ -50,10 +50,22 @@ def test_compiled_iou_matches_the_reference_on_random_polygons():
     A4, B12 = star_polygons(50, 4, 2), star_polygons(3, 12, 3)
     ref = iou(A4.double()[:, None], B12.double()[None])
     assert float((iou_pairs(A4, B12).double() - ref).abs().max()) < 1e-6
+    # The states' own polygons: axis-aligned 8-keypoint rectangles (collinear
+    # midpoints, shared edges), moved and turned a little.
+    g = torch.Generator().manual_seed(6)
+    flat = torch.as_tensor(np.stack([cloth(0.02 * j)[:, :2] for j in range(6)]))
+    yaw = 0.2 * (torch.rand(200, generator=g) - 0.5)
+    R = torch.stack([yaw.cos(), -yaw.sin(), yaw.sin(), yaw.cos()], -1).view(-1, 2, 2)
+    moved = flat[torch.randint(6, (200,), generator=g)] @ R.transpose(-1, -2)
+    moved = moved + 0.05 * (torch.rand(200, 1, 2, generator=g) - 0.5)
+    ref = iou(moved.double()[:, None], flat.double()[None])
+    assert float((iou_pairs(moved, flat).double() - ref).abs().max()) < 1e-6
 
 
 def test_torch_fallback_gives_the_same_iou(monkeypatch):
     A, B = star_polygons(100, 8, 4), star_polygons(6, 8, 5)
+    if polygon_kernel.load() is None:
+        pytest.skip("no C compiler on this machine: iou_pairs is the fallback")
     compiled = iou_pairs(A, B)
     monkeypatch.setitem(polygon_kernel._LOADED, "kernel", None)
     fallback = iou_pairs(A, B)
@@ -62,16 +74,27 @@ def test_torch_fallback_gives_the_same_iou(monkeypatch):
 
 def test_the_kernel_is_built_once_into_the_cache(tmp_path, monkeypatch):
     monkeypatch.setenv("FABRIC_IMITATION_CACHE", str(tmp_path))
-    monkeypatch.delitem(polygon_kernel._LOADED, "kernel", raising=False)
-    kernel = polygon_kernel.Load()
-    if kernel is None:
-        pytest.skip("no C compiler on this machine")
-    built = list(tmp_path.glob("polygon_kernel-*.so"))
-    assert len(built) == 1 and not list(tmp_path.glob("*.tmp"))
-    stamp = built[0].stat().st_mtime_ns
-    monkeypatch.delitem(polygon_kernel._LOADED, "kernel")
-    assert polygon_kernel.Load() is not None
-    assert built[0].stat().st_mtime_ns == stamp  # loaded, not rebuilt
+    polygon_kernel.forget()
+    try:
+        if polygon_kernel.load() is None:
+            pytest.skip("no C compiler on this machine")
+        (built,) = tmp_path.glob("polygon_kernel-*.so")
+        assert not list(tmp_path.glob("*.tmp"))
+        stamp = built.stat().st_mtime_ns
+        polygon_kernel.forget()
+        assert polygon_kernel.load() is not None
+        assert built.stat().st_mtime_ns == stamp  # loaded, not rebuilt
+        # A library that does not load is built again (a new file: the old
+        # one stays mapped into this process).
+        built.unlink()
+        built.write_bytes(b"not a shared library")
+        polygon_kernel.forget()
+        assert polygon_kernel.load() is not None
+        A, B = star_polygons(10, 8, 7), star_polygons(2, 8, 8)
+        ref = iou(A.double()[:, None], B.double()[None])
+        assert float((iou_pairs(A, B).double() - ref).abs().max()) < 1e-6
+    finally:
+        polygon_kernel.forget()  # the next test loads from its own cache
     with pytest.raises(ValueError, match="iou_pairs needs"):
         iou_pairs(torch.zeros(3, 8), torch.zeros(2, 8, 2))
 
@@ -219,22 +242,29 @@ def test_registration_is_cached_per_demo_and_priors(tmp_path, monkeypatch):
         strict=True,
     ):
         assert torch.equal(a, b)
-    # Another demo is registered anew; a corrupt entry is trained over.
+    # A cache hit leaves torch's global stream where training does.
+    learn_from_demo(demo, prior, cfg, cache=False)
+    after_training = torch.random.get_rng_state()
+    learn_from_demo(demo, prior, cfg)
+    assert torch.equal(torch.random.get_rng_state(), after_training)
+    # Another demo is registered anew.
     _, info = learn_from_demo(demo[:-1], prior, cfg)
     assert info["registration_cached"] is False
-    (entry,) = [p for p in tmp_path.glob("registration-*.pt")][:1]
-    for p in tmp_path.glob("registration-*.pt"):
-        p.write_bytes(b"not a checkpoint")
-    _, info = learn_from_demo(demo, prior, cfg)
-    assert info["registration_cached"] is False
-    _, info = learn_from_demo(demo, prior, cfg, cache=False)
-    assert info["registration_cached"] is False
-    assert entry.exists() and not list(tmp_path.glob("*.tmp"))
-
-
-def _spin():
-    while True:
-        pass
+    # A corrupt or empty entry is trained over, from the seeded start.
+    for junk in (b"not a checkpoint", b""):
+        for p in tmp_path.glob("registration-*.pt"):
+            p.write_bytes(junk)
+        retrained, info = learn_from_demo(demo, prior, cfg)
+        assert info["registration_cached"] is False
+        for a, b in zip(
+            fresh.f_A.net.state_dict().values(),
+            retrained.f_A.net.state_dict().values(),
+            strict=True,
+        ):
+            assert torch.equal(a, b)
+        _, info = learn_from_demo(demo, prior, cfg)
+        assert info["registration_cached"] is True
+    assert not list(tmp_path.glob("*.tmp"))
 
 
 @pytest.mark.slow
@@ -242,10 +272,7 @@ def test_the_same_seed_gives_the_same_actions_idle_and_under_load():
     """box with the shipped priors, demo and settings: 10 control steps
     idle, then again with another process keeping a core busy; the
     iteration count, never the clock, decides, so every action is equal."""
-    import multiprocessing as mp
-    import time
-
-    from fabric_imitation.tools.bench import _PreparedMpc
+    from fabric_imitation.tools.bench import OneCoreBusy, _PreparedMpc
 
     torch.set_num_threads(1)
     _, mpc, states = _PreparedMpc("box", None, None, 500, 5)
@@ -259,14 +286,8 @@ def test_the_same_seed_gives_the_same_actions_idle_and_under_load():
         ]
 
     idle = actions()
-    busy = mp.get_context("spawn").Process(target=_spin, daemon=True)
-    busy.start()
-    try:
-        time.sleep(0.5)
+    with OneCoreBusy():
         loaded = actions()
-    finally:
-        busy.terminate()
-        busy.join()
     assert all(r.feasible for r in idle)
     for a, b in zip(idle, loaded, strict=True):
         assert torch.equal(a.action, b.action)

@@ -10,6 +10,7 @@ the grippers 36 cm up. Real-time factors in wall time and in process CPU
 time (the latter is what a loaded machine does not change).
 """
 
+import contextlib
 import dataclasses as dc
 import json
 import os
@@ -20,6 +21,7 @@ from pathlib import Path
 
 import numpy as np
 from fabric_imitation.diagrams.station import StationPorts
+from fabric_imitation.learning.errors import InputError
 from fabric_imitation.learning.state import SIDES
 from fabric_imitation.scenarios.loader import LoadScenario
 from fabric_imitation.scenarios.schema import Scenario
@@ -384,10 +386,30 @@ def BenchTrain(
     return result
 
 
-def _spin() -> None:
+def _spin(ready) -> None:
     """A process that keeps one core busy (what a user's other job does)."""
+    ready.set()
     while True:
         pass
+
+
+@contextlib.contextmanager
+def OneCoreBusy():
+    """Within the block another process keeps one core busy; it has started
+    spinning when the block begins."""
+    import multiprocessing as mp
+
+    context = mp.get_context("spawn")
+    ready = context.Event()
+    busy = context.Process(target=_spin, args=(ready,), daemon=True)
+    busy.start()
+    try:
+        if not ready.wait(120):
+            raise RuntimeError("the process meant to keep a core busy did not start")
+        yield
+    finally:
+        busy.terminate()
+        busy.join()
 
 
 # Scenarios `bench mpc` times by default: one demo of each kind.
@@ -423,6 +445,12 @@ def BenchMpc(
     from fabric_imitation.learning import polygon_kernel
     from fabric_imitation.tools.episode import TorchThreads
 
+    if demo_dir is not None and len(scenario_names) != 1:
+        raise InputError("a demo directory needs exactly one scenario")
+    if steps < 1:
+        raise InputError(f"steps must be at least 1, got {steps}")
+    for name in scenario_names:
+        LoadScenario(scenario_name=name)  # an unknown name fails here, at once
     torch.set_num_threads(threads or TorchThreads())
     scenarios = {}
     for name in scenario_names:
@@ -431,7 +459,7 @@ def BenchMpc(
         with tempfile.TemporaryDirectory() as cache:
             saved = os.environ.get("FABRIC_IMITATION_CACHE")
             os.environ["FABRIC_IMITATION_CACHE"] = cache
-            polygon_kernel._LOADED.clear()
+            polygon_kernel.forget()
             try:
                 first, _, _ = _PreparedMpc(
                     name, priors_dir, demo_dir, num_samples, horizon
@@ -444,6 +472,7 @@ def BenchMpc(
                     del os.environ["FABRIC_IMITATION_CACHE"]
                 else:
                     os.environ["FABRIC_IMITATION_CACHE"] = saved
+                polygon_kernel.forget()  # the one built in the deleted cache
         scenarios[name] = _TimeMpcSteps(mpc, states, steps) | {
             "demo_to_first_action_s": {"first_time": first, "prepared_before": again},
         }
@@ -454,7 +483,7 @@ def BenchMpc(
         "num_samples": num_samples,
         "horizon": horizon,
         "steps": steps,
-        "iou": "compiled kernel" if polygon_kernel.Load() else "torch",
+        "iou": "compiled kernel" if polygon_kernel.load() else "torch",
         "scenarios": scenarios,
         "targets": {
             "iteration_ms_p50": 20,
@@ -499,8 +528,6 @@ def _PreparedMpc(name, priors_dir, demo_dir, num_samples, horizon):
 def _TimeMpcSteps(mpc, states, steps: int) -> dict:
     """`steps` solves from the demo's states with 1 cm of noise, idle and
     with one core busy."""
-    import multiprocessing as mp
-
     import torch
 
     rng = np.random.default_rng(0)
@@ -534,14 +561,8 @@ def _TimeMpcSteps(mpc, states, steps: int) -> dict:
         }
 
     idle_results, idle = measure()
-    busy = mp.get_context("spawn").Process(target=_spin, daemon=True)
-    busy.start()
-    try:
-        time.sleep(0.5)
+    with OneCoreBusy():
         loaded_results, loaded = measure()
-    finally:
-        busy.terminate()
-        busy.join()
     changed = sum(
         not torch.equal(a.action, b.action)
         for a, b in zip(idle_results, loaded_results, strict=True)

@@ -655,8 +655,9 @@ def _add_bench_mpc(p):
     p.add_argument(
         "--scenarios",
         nargs="+",
-        default=["box", "hang", "box_big"],
-        help="tasks whose shipped demos are used (default: box hang box_big)",
+        default=None,
+        help="tasks whose shipped demos are used (default: box hang box_big, "
+        "bench.MPC_SCENARIOS)",
     )
     p.add_argument("--priors", type=Path, default=None)
     p.add_argument("--demo", type=Path, default=None, help="with one scenario")
@@ -666,17 +667,10 @@ def _add_bench_mpc(p):
 
 @command("bench mpc")(_add_bench_mpc)
 def _bench_mpc(args) -> dict:
-    from fabric_imitation.scenarios.loader import LoadScenario
-    from fabric_imitation.tools.bench import BenchMpc
+    from fabric_imitation.tools.bench import MPC_SCENARIOS, BenchMpc
 
-    if args.demo is not None and len(args.scenarios) != 1:
-        raise InputError("--demo needs exactly one --scenarios name")
-    for name in args.scenarios:
-        LoadScenario(scenario_name=name)  # an unknown name fails here, at once
-    if args.steps < 1:
-        raise InputError(f"--steps must be at least 1, got {args.steps}")
     return BenchMpc(
-        scenario_names=args.scenarios,
+        scenario_names=args.scenarios or MPC_SCENARIOS,
         priors_dir=args.priors,
         demo_dir=args.demo,
         steps=args.steps,
