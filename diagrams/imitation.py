@@ -51,6 +51,7 @@ from fabric_imitation.learning.state import (
     corner_indices,
     world_to_object,
 )
+from fabric_imitation.learning.tracker import KeypointTracker
 from fabric_imitation.scenarios.schema import Scenario
 from fabric_imitation.systems.imitation import (
     CfmController,
@@ -363,6 +364,16 @@ def _KeypointEstimator(
     scenario: Scenario, priors: Priors, start: float
 ) -> KeypointEstimator:
     cam = scenario.camera
+    tracker = None
+    if scenario.tracker.enabled:
+        tracker = KeypointTracker(
+            forward=priors.forward,
+            num_keypoints=priors.num_keypoints,
+            config=scenario.tracker,
+            object_size=(
+                scenario.object.size if scenario.object.kind != "none" else None
+            ),
+        )
     return KeypointEstimator(
         priors=priors,
         num_keypoints=priors.num_keypoints,
@@ -372,6 +383,7 @@ def _KeypointEstimator(
         offset=start,
         misread_grasp_error=scenario.safety.misread_grasp_error,
         max_side_length=scenario.safety.misread_side_stretch * scenario.cloth.size[1],
+        tracker=tracker,
     )
 
 

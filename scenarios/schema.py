@@ -16,6 +16,7 @@ from fabric_imitation.learning.demo_learning import RewardConfig
 from fabric_imitation.learning.errors import InputError
 from fabric_imitation.learning.mpc import MpcConfig
 from fabric_imitation.learning.safety import SafetyConfig
+from fabric_imitation.learning.tracker import TrackerConfig
 from pydrake.multibody.plant import MultibodyPlantConfig
 from pydrake.systems.sensors import CameraConfig
 
@@ -573,6 +574,9 @@ class Scenario:
     mpc: MpcConfig = dc.field(default_factory=MpcConfig)
     # The demo reward's settings (the defaults are the paper's R_E).
     reward: RewardConfig = dc.field(default_factory=RewardConfig)
+    # The keypoint tracker's settings (off by default: each step's state is
+    # f_R's reading of that frame).
+    tracker: TrackerConfig = dc.field(default_factory=TrackerConfig)
     collection: CollectionConfig = dc.field(default_factory=CollectionConfig)
 
     def __post_init__(self):
@@ -596,6 +600,7 @@ class Scenario:
                 self.safety,
                 self.mpc,
                 self.reward,
+                self.tracker,
                 self.collection,
             ):
                 sub.__post_init__()

@@ -92,6 +92,13 @@ class KeypointEstimator(LeafSystem):
     within that (NaN while the frame is read right, or before any was);
     the keypoints themselves stay f_R's.
 
+    With a ``tracker`` (learning/tracker.py), the ``keypoints`` output is
+    f_R's reading fused with f_D's prediction from the previous estimate and
+    the grippers' measured move since the last update, so a corner hidden
+    under the cloth or behind the object keeps a predicted place (estimate
+    and variance are discrete state). Without the ``grippers`` input there
+    is no move to predict with, and the output is f_R's reading.
+
     Input ports: ``mask`` (ImageGrey8U), ``depth`` (ImageDepth32F),
     ``object_pose`` (RigidTransform X_WO), ``grippers`` (6, optional: left
     and right gripper positions in world).
@@ -99,7 +106,9 @@ class KeypointEstimator(LeafSystem):
     ``remembered_far_corners`` (6, object frame: s3 then s4).
 
     Args:
-        priors: anything with ``keypoints(mask, depth) -> (M, 3)`` world points.
+        priors: anything with ``keypoints(mask, depth) -> (M, 3)`` world
+            points (and ``keypoints_and_spread`` with a tracker).
+        tracker: a KeypointTracker in the object frame, or None.
     """
 
     def __init__(
@@ -113,9 +122,16 @@ class KeypointEstimator(LeafSystem):
         offset: float = 0.0,
         misread_grasp_error: float = np.inf,
         max_side_length: float = np.inf,
+        tracker=None,
     ):
         super().__init__()
         self._priors = priors
+        self._tracker = tracker
+        if tracker is not None and tracker.num_keypoints != num_keypoints:
+            raise ValueError(
+                f"the tracker has {tracker.num_keypoints} keypoints, the "
+                f"estimator {num_keypoints}"
+            )
         self._mask, self._depth, self._pose = _DeclareCameraInputs(self, width, height)
         self._grippers = self.DeclareVectorInputPort("grippers", 6)
         idx = corner_indices(num_keypoints)
@@ -128,6 +144,12 @@ class KeypointEstimator(LeafSystem):
         # output: those while this frame is misread, else NaN.
         self._last_good_far = self.DeclareDiscreteState(BasicVector(np.full(6, np.nan)))
         self._remembered = self.DeclareDiscreteState(BasicVector(np.full(6, np.nan)))
+        # The tracker's estimate is the `keypoints` state; its variance per
+        # keypoint and the grippers at the last update (world; NaN before).
+        self._variance = self.DeclareDiscreteState(
+            BasicVector(np.full(num_keypoints, np.nan))
+        )
+        self._last_grippers = self.DeclareDiscreteState(BasicVector(np.full(6, np.nan)))
         self.DeclarePeriodicDiscreteUpdateEvent(period, offset, self._update)
         self.DeclareForcedDiscreteUpdateEvent(self._update)
         self.DeclareStateOutputPort("keypoints", self._state)
@@ -136,8 +158,13 @@ class KeypointEstimator(LeafSystem):
     def _update(self, context, discrete_state) -> EventStatus:
         mask = self._mask.Eval(context).data[:, :, 0]
         depth = self._depth.Eval(context).data[:, :, 0]
-        p_W = np.array(self._priors.keypoints(mask, depth))
+        if self._tracker is None:
+            p_W, spread = np.array(self._priors.keypoints(mask, depth)), None
+        else:
+            p_W, spread = self._priors.keypoints_and_spread(mask, depth)
+            p_W = np.array(p_W)
         trusted = True
+        grippers = None
         if self._grippers.HasValue(context):
             grippers = self._grippers.Eval(context).reshape(2, 3)
             error = float(np.linalg.norm(p_W[self._corners] - grippers, axis=1).sum())
@@ -147,9 +174,10 @@ class KeypointEstimator(LeafSystem):
             # is misread as well (f_R put it at the other far corner).
             sides = np.linalg.norm(p_W[self._far] - grippers, axis=1)
             trusted = trusted and bool((sides <= self._max_side_length).all())
-        p_O = world_to_object(
-            p_W, PlanarPose.FromRigidTransform(self._pose.Eval(context))
-        )
+        pose = PlanarPose.FromRigidTransform(self._pose.Eval(context))
+        p_O = world_to_object(p_W, pose)
+        if self._tracker is not None:
+            p_O = self._track(context, discrete_state, p_O, spread, grippers, pose)
         discrete_state.get_mutable_vector(self._state).SetFromVector(p_O.ravel())
         remembered = np.full(6, np.nan)
         if trusted:
@@ -160,6 +188,27 @@ class KeypointEstimator(LeafSystem):
             remembered = context.get_discrete_state(self._last_good_far).value()
         discrete_state.get_mutable_vector(self._remembered).SetFromVector(remembered)
         return EventStatus.Succeeded()
+
+    def _track(self, context, discrete_state, p_O, spread, grippers, pose):
+        """The tracker's step from the estimate of the last update; stores
+        the new estimate's variance and the grippers. Returns the estimate."""
+        variance = context.get_discrete_state(self._variance).value()
+        previous = None
+        if np.all(np.isfinite(variance)):
+            estimate = context.get_discrete_state(self._state).value()
+            previous = (estimate.reshape(-1, 3), variance)
+        grasped = action = None
+        if grippers is not None:
+            grasped = world_to_object(grippers, pose)
+            last = context.get_discrete_state(self._last_grippers).value()
+            if np.all(np.isfinite(last)):
+                action = (grasped - world_to_object(last.reshape(2, 3), pose)).ravel()
+            discrete_state.get_mutable_vector(self._last_grippers).SetFromVector(
+                grippers.ravel()
+            )
+        x, v = self._tracker.step(previous, p_O, spread, action=action, grasped=grasped)
+        discrete_state.get_mutable_vector(self._variance).SetFromVector(v)
+        return x
 
 
 class ChamferToDemo(LeafSystem):

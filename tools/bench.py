@@ -702,3 +702,145 @@ def _plot_occlusion(table: dict, path: Path) -> None:
     fig.tight_layout()
     fig.savefig(path, dpi=100)
     plt.close(fig)
+
+
+# f_R is "sure" of a keypoint whose heatmap spread is at most this [px].
+TRACKER_SURE_SPREAD_PX = 4.0
+# A far corner "f_R misreads": more than this [m] from the true one.
+TRACKER_OFF_M = 0.08
+
+
+def BenchTracker(
+    *,
+    demo_names=("box", "hang", "box_big"),
+    priors_dir: Path | None = None,
+    out: Path | None = None,
+) -> dict:
+    """The keypoint tracker (learning/tracker.py) against f_R alone on the
+    shipped demos' frames, both compared with the simulator's true
+    keypoints; the grippers' moves are those of the true grasped corners.
+    Also fits f_R's error model (error against heatmap spread) on the same
+    frames. Writes JSON and, next to it, a plot of the far corners' errors."""
+    import torch
+    from fabric_imitation.diagrams.imitation import DEFAULT_DEMOS, DEFAULT_PRIORS
+    from fabric_imitation.learning.demo_io import LoadDemo
+    from fabric_imitation.learning.priors import load_priors
+    from fabric_imitation.learning.state import corner_indices
+    from fabric_imitation.learning.tracker import (
+        TrackerConfig,
+        fit_measurement_model,
+        track_frames,
+    )
+
+    torch.set_num_threads(1)
+    priors = load_priors(priors_dir or DEFAULT_PRIORS)
+    idx = corner_indices(priors.num_keypoints)
+    far = [idx["s3"], idx["s4"]]
+    others = [k for k in range(priors.num_keypoints) if k not in (idx["s1"], idx["s2"])]
+    config = TrackerConfig(enabled=True, object_projection=False)
+    results, curves, spreads, errors, one_step = {}, {}, [], [], []
+    for name in demo_names:
+        demo = LoadDemo(DEFAULT_DEMOS / name)
+        truth = np.load(demo.path / "ground_truth.npz")["keypoints_W"]
+        scenario = LoadScenario(scenario_text=demo.scenario_yaml)
+        size = scenario.object.size if scenario.object.kind != "none" else None
+        grasped = truth[:, [idx["s1"], idx["s2"]]]
+        runs = {
+            projection: track_frames(
+                priors,
+                demo.mask,
+                demo.depth,
+                grasped,
+                dc.replace(config, object_projection=projection),
+                object_pose=demo.object_pose,
+                object_size=size,
+            )
+            for projection in (False, True)
+        }
+        measured, spread = runs[False]["measured"], runs[False]["spread"]
+        e_fr = np.linalg.norm(measured - truth, axis=-1)
+        e_tr = np.linalg.norm(runs[False]["tracked"] - truth, axis=-1)
+        e_pr = np.linalg.norm(runs[True]["tracked"] - truth, axis=-1)
+        # f_D's one-step error from the true state and the true move.
+        moves = (grasped[1:] - grasped[:-1]).reshape(-1, 6)
+        e_fd = np.linalg.norm(
+            priors.forward(truth[:-1], moves).numpy() - truth[1:], axis=-1
+        )
+        one_step.append(e_fd[:, others].ravel())
+        spreads.append(spread[:, others].ravel())
+        errors.append(e_fr[:, others].ravel())
+        off = e_fr[:, far] > TRACKER_OFF_M
+        sure = spread[:, others] <= TRACKER_SURE_SPREAD_PX
+        follow = np.linalg.norm(runs[False]["tracked"] - measured, axis=-1)[:, others]
+
+        def cm(x) -> float | None:
+            return round(100 * float(np.mean(x)), 2) if np.size(x) else None
+
+        results[name] = {
+            "frames": len(truth),
+            "error_cm_mean": {
+                "f_R": cm(e_fr[:, others]),
+                "tracked": cm(e_tr[:, others]),
+                "tracked_with_object_projection": cm(e_pr[:, others]),
+            },
+            "far_corners_f_R_off": int(off.sum()),
+            "far_corners_where_f_R_off_error_cm_mean": {
+                "f_R": cm(e_fr[:, far][off]),
+                "tracked": cm(e_tr[:, far][off]),
+                "tracked_with_object_projection": cm(e_pr[:, far][off]),
+            },
+            "f_D_one_step_error_cm_mean": cm(e_fd[:, others]),
+            "sure_keypoints": int(sure.sum()),
+            "sure_tracked_from_f_R_cm_max": (
+                round(100 * float(follow[sure].max()), 2) if sure.any() else None
+            ),
+        }
+        curves[name] = (
+            100 * e_fr[:, far].mean(1),
+            100 * e_tr[:, far].mean(1),
+        )
+    base, per_px2 = fit_measurement_model(
+        np.concatenate(spreads), np.concatenate(errors)
+    )
+    summary = {
+        "benchmark": "tracker",
+        "demos": list(demo_names),
+        "config": dc.asdict(config),
+        "sure_spread_px": TRACKER_SURE_SPREAD_PX,
+        "off_m": TRACKER_OFF_M,
+        "measurement_model_fit": {
+            "base_m": round(base, 5),
+            "per_px2_m": float(f"{per_px2:.3g}"),
+        },
+        "f_D_one_step_error_m_rms": round(
+            float(np.sqrt(np.mean(np.concatenate(one_step) ** 2))), 4
+        ),
+        "results": results,
+    }
+    if out is not None:
+        _write(Path(out), summary)
+        _plot_tracker(curves, Path(out).with_suffix(".png"))
+    return summary
+
+
+def _plot_tracker(curves: dict, path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(
+        1, len(curves), figsize=(4 * len(curves), 3), squeeze=False
+    )
+    for ax, (name, (fr, tr)) in zip(axes[0], curves.items(), strict=True):
+        ax.plot(fr, "o-", ms=3, label="f_R alone")
+        ax.plot(tr, "s-", ms=3, label="tracked")
+        ax.set_title(name)
+        ax.set_xlabel("demo frame")
+        ax.set_ylabel("far corners' error [cm]")
+        ax.legend(fontsize=7)
+    fig.tight_layout()
+    tmp = path.with_name(path.name + ".tmp.png")
+    fig.savefig(tmp, dpi=110)
+    plt.close(fig)
+    tmp.replace(path)

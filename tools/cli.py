@@ -60,6 +60,8 @@ DESCRIPTIONS = {
     "bench mpc": "MPC iterations and control steps, idle and with one core loaded.",
     "bench occlusion": "f_R's keypoint error as more of the fabric is hidden "
     "(grippers, partial masks), on the shipped demos' frames.",
+    "bench tracker": "The keypoint tracker against f_R alone on the shipped "
+    "demos' frames, and f_R's error model (error against heatmap spread).",
     "report": "Build the evaluation's tables and figures (success with Wilson "
     "intervals, paired comparisons against ours, stop against count) from "
     "evaluate's trial lines.",
@@ -692,6 +694,20 @@ def _bench_occlusion(args) -> dict:
     from fabric_imitation.tools.bench import BenchOcclusion
 
     return BenchOcclusion(priors_dir=args.priors, out=args.out, seed=args.seed)
+
+
+def _add_bench_tracker(p):
+    p.add_argument("--priors", type=Path, default=None)
+    p.add_argument(
+        "--out", type=Path, default=None, help="also write the JSON (and a plot) here"
+    )
+
+
+@command("bench tracker")(_add_bench_tracker)
+def _bench_tracker(args) -> dict:
+    from fabric_imitation.tools.bench import BenchTracker
+
+    return BenchTracker(priors_dir=args.priors, out=args.out)
 
 
 def _add_report(p):

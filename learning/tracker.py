@@ -1,0 +1,226 @@
+"""A keypoint tracker: f_R's reading of each frame fused with f_D's
+prediction from the previous estimate and the grippers' measured move.
+
+The paper names tracking the manipulated object through the whole
+manipulation as the remedy for occlusion (Sec. VI). Each keypoint k carries
+an estimate x_k and a variance v_k (isotropic, m^2). Per control step:
+
+    predict   x^- = f_D(x, a),            v^- = v + q^2
+    measure   z_k = f_R's keypoint,       r_k = (sigma_0 + c * spread_k^2)^2
+    fuse      g_k = v^-_k / (v^-_k + r_k), x_k = x^-_k + g_k (z_k - x^-_k),
+              v_k = (1 - g_k) v^-_k
+
+where a is the grippers' displacement since the last frame (the robot
+measures it), spread_k f_R's heatmap standard deviation [px]
+(KeypointNet.locate), and q f_D's one-step error. The grasped corners s1, s2
+are where the grippers hold them. f_D learned no contact, so a predicted
+keypoint inside the task object is put on the object's nearest face, as the
+cloth simulator does for held particles.
+
+`fabric-imitate bench tracker --json` fits the error model on the shipped
+demos' frames against the simulator's true keypoints and reports how far
+f_R alone and the tracker are from them.
+"""
+
+import dataclasses as dc
+import math
+
+import numpy as np
+import torch
+from fabric_imitation.learning.state import (
+    corner_indices,
+    object_to_world,
+    world_to_object,
+)
+
+
+@dc.dataclass
+class TrackerConfig:
+    # Off: each control step's keypoints are f_R's reading of that frame
+    # alone (the grasped corners from the grippers).
+    enabled: bool = False
+    # f_R's error [m] for a keypoint whose heatmap spread is s [px]:
+    # measurement_base + measurement_per_px2 * s^2, the least-squares fit
+    # over the shipped demos' frames (`bench tracker`). A sharp heatmap
+    # (3 px) is about 0.8 cm off, a diffuse one (25 px), a corner f_R cannot
+    # see, about 17 cm.
+    measurement_base: float = 0.006
+    measurement_per_px2: float = 2.7e-4
+    # f_D's one-step error [m] (the process noise): its root mean square
+    # over the shipped demos' keypoints other than the grasped corners,
+    # predicted from the true state and move (`bench tracker`).
+    process_noise: float = 0.026
+    # Put predicted keypoints that lie inside the task object on its
+    # nearest face (f_D learned no contact). Off: on the shipped demos'
+    # frames it changes no tracked keypoint (`bench tracker`).
+    object_projection: bool = False
+
+    def __post_init__(self):
+        for name in ("measurement_base", "measurement_per_px2", "process_noise"):
+            value = getattr(self, name)
+            if not (math.isfinite(value) and value > 0):
+                raise ValueError(
+                    f"tracker.{name} must be positive and finite, got {value}"
+                )
+
+
+def measurement_sigma(spread: np.ndarray, config: TrackerConfig) -> np.ndarray:
+    """f_R's error [m] for heatmap spreads [px] (TrackerConfig)."""
+    spread = np.asarray(spread, dtype=np.float64)
+    return config.measurement_base + config.measurement_per_px2 * spread**2
+
+
+def fit_measurement_model(spread: np.ndarray, error: np.ndarray) -> tuple[float, float]:
+    """Least-squares (base, per_px2) of error ~ base + per_px2 * spread^2 over
+    paired samples of f_R's spread [px] and its error [m]."""
+    spread = np.asarray(spread, dtype=np.float64).ravel()
+    error = np.asarray(error, dtype=np.float64).ravel()
+    if spread.shape != error.shape or spread.size < 2:
+        raise ValueError("need at least two paired spreads and errors")
+    X = np.stack([np.ones_like(spread), spread**2], 1)
+    (base, per_px2), *_ = np.linalg.lstsq(X, error, rcond=None)
+    return float(base), float(per_px2)
+
+
+def project_out_of_box(p: np.ndarray, size) -> np.ndarray:
+    """Points (..., 3) in the object frame (the box centred at the origin in
+    x, y, from z = 0 up to size[2]) moved from inside the box to its nearest
+    face other than the bottom; points outside stay."""
+    p = np.array(p, dtype=np.float64, copy=True)
+    half = np.array([size[0] / 2, size[1] / 2])
+    height = float(size[2])
+    x, y, z = p[..., 0], p[..., 1], p[..., 2]
+    inside = (np.abs(x) < half[0]) & (np.abs(y) < half[1]) & (z < height) & (z > 0)
+    if not inside.any():
+        return p
+    # Distances to the faces: -x, +x, -y, +y, top.
+    d = np.stack([x + half[0], half[0] - x, y + half[1], half[1] - y, height - z], -1)
+    face = d.argmin(-1)
+    q = p[inside]
+    f = face[inside]
+    q[f == 0, 0] = -half[0]
+    q[f == 1, 0] = half[0]
+    q[f == 2, 1] = -half[1]
+    q[f == 3, 1] = half[1]
+    q[f == 4, 2] = height
+    p[inside] = q
+    return p
+
+
+class KeypointTracker:
+    """Fuses f_R's per-frame keypoints with f_D's prediction (module doc).
+
+    Holds no state of its own: `step` maps the previous estimate and
+    variance to the next, so a Drake system can keep them in its context.
+    States are (M, 3) in one frame throughout (the estimator uses the task
+    object's frame); f_D is invariant to where that frame lies on the table.
+
+    Args:
+        forward: f_D, ``forward(S (B, M, 3), A (B, 6)) -> (B, M, 3)``
+            (Priors.forward).
+        num_keypoints: M.
+        config: the error model.
+        object_size: the task object as a box in the states' frame (centred
+            at the origin in x, y, from z = 0 up), or None.
+    """
+
+    def __init__(
+        self,
+        *,
+        forward,
+        num_keypoints: int,
+        config: TrackerConfig,
+        object_size=None,
+    ):
+        self._forward = forward
+        self._m = num_keypoints
+        self.config = config
+        self._object_size = None if object_size is None else np.asarray(object_size)
+        idx = corner_indices(num_keypoints)
+        self._grasped = [idx["s1"], idx["s2"]]
+
+    @property
+    def num_keypoints(self) -> int:
+        return self._m
+
+    def step(
+        self,
+        previous: tuple[np.ndarray, np.ndarray] | None,
+        measured: np.ndarray,
+        spread: np.ndarray,
+        *,
+        action: np.ndarray | None = None,
+        grasped: np.ndarray | None = None,
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """One frame. ``previous``: the last (estimate (M, 3), variance (M,)),
+        or None at the first frame; ``measured`` (M, 3): f_R's keypoints,
+        ``spread`` (M,): their heatmap spreads [px]; ``action`` (6,): the
+        grippers' move since the previous frame (None: no prediction, f_R's
+        reading stands); ``grasped`` (2, 3): where the grippers hold s1 and
+        s2, or None. Returns the new (estimate, variance)."""
+        measured = np.asarray(measured, dtype=np.float64)
+        if measured.shape != (self._m, 3):
+            raise ValueError(f"keypoints must be ({self._m}, 3), got {measured.shape}")
+        r = measurement_sigma(spread, self.config) ** 2
+        if r.shape != (self._m,):
+            raise ValueError(f"spreads must be ({self._m},), got {r.shape}")
+        if previous is None or action is None:
+            x, v = measured.copy(), r
+        else:
+            estimate, variance = previous
+            x = self._predict(estimate, np.asarray(action, dtype=np.float64))
+            v = np.asarray(variance, dtype=np.float64) + self.config.process_noise**2
+            gain = v / (v + r)
+            x = x + gain[:, None] * (measured - x)
+            v = (1.0 - gain) * v
+        if grasped is not None:
+            x[self._grasped] = np.asarray(grasped, dtype=np.float64).reshape(2, 3)
+            v = v.copy()
+            v[self._grasped] = 0.0
+        return x, v
+
+    def _predict(self, x: np.ndarray, action: np.ndarray) -> np.ndarray:
+        with torch.no_grad():
+            pred = self._forward(
+                torch.as_tensor(np.asarray(x)[None], dtype=torch.float32),
+                torch.as_tensor(action.reshape(1, 6), dtype=torch.float32),
+            )
+        pred = np.asarray(pred, dtype=np.float64)[0]
+        if self.config.object_projection and self._object_size is not None:
+            pred = project_out_of_box(pred, self._object_size)
+        return pred
+
+
+def track_frames(
+    priors,
+    masks,
+    depths,
+    grasped_W: np.ndarray,
+    config: TrackerConfig,
+    *,
+    object_pose=None,
+    object_size=None,
+) -> dict:
+    """Tracks a recorded episode: ``masks``, ``depths`` (T, H, W), the
+    grippers' positions ``grasped_W`` (T, 2, 3) in world, each frame's move
+    the difference of consecutive positions. Returns world keypoints of f_R
+    alone (``measured``) and tracked (``tracked``), (T, M, 3), and f_R's
+    spreads (``spread``, (T, M)). ``object_pose`` [x, y, yaw_rad] and
+    ``object_size`` give the object for the projection (the tracker runs in
+    the object's frame)."""
+    measured, spread = priors.keypoints_and_spread(masks, depths)
+    pose = np.zeros(3) if object_pose is None else np.asarray(object_pose)
+    tracker = KeypointTracker(
+        forward=priors.forward,
+        num_keypoints=priors.num_keypoints,
+        config=config,
+        object_size=object_size,
+    )
+    grasped_O = world_to_object(grasped_W.reshape(-1, 3), pose).reshape(-1, 2, 3)
+    out, state = [], None
+    for t in range(len(measured)):
+        action = None if t == 0 else (grasped_O[t] - grasped_O[t - 1]).ravel()
+        z = world_to_object(measured[t], pose)
+        state = tracker.step(state, z, spread[t], action=action, grasped=grasped_O[t])
+        out.append(object_to_world(state[0], pose))
+    return {"measured": measured, "tracked": np.array(out), "spread": spread}
