@@ -236,3 +236,57 @@ def test_the_report_module_needs_neither_drake_nor_torch():
         [sys.executable, "-c", code], capture_output=True, text=True, timeout=60
     )
     assert result.stdout == "[]\n", result.stderr
+
+
+def test_compare_pairs_two_runs_on_the_same_poses(tmp_path):
+    """Base 2 / 5, new 4 / 5 on the same poses: 2 both, 2 new only, 0 base
+    only, 1 neither; the difference +40 pp with Newcombe's interval, per
+    task and over all; Markdown written."""
+    from fabric_imitation.tools.report import Compare
+
+    base_ok = [True, False, True, False, False]
+    new_ok = [True, True, True, True, False]
+    base = _write(
+        tmp_path / "base.jsonl", [_trial("ours", i, ok) for i, ok in enumerate(base_ok)]
+    )
+    new_rows = [
+        _trial("ours", i, ok, fingerprint=FINGERPRINT | {"code": "n3w"})
+        for i, ok in enumerate(new_ok)
+    ]
+    new = _write(tmp_path / "new.jsonl", new_rows)
+    out = tmp_path / "compare.md"
+    result = Compare(base=[base], new=[new], out=out)
+    row = result["all"]
+    assert (row["pairs"], row["both"], row["new_only"], row["base_only"]) == (
+        5,
+        2,
+        2,
+        0,
+    )
+    assert row["difference"] == pytest.approx(0.4)
+    low, high = row["newcombe95"]
+    assert (low, high) == pytest.approx(
+        NewcombePaired(2, 2, 0, 1)[1:], abs=1e-12
+    ) and low < 0.4 < high
+    assert row["mcnemar_p"] == pytest.approx(McNemarExact(2, 0))
+    assert result["scenarios"]["box"]["pairs"] == 5
+    assert (result["base_code"], result["new_code"]) == ("c0de", "n3w")
+    text = out.read_text()
+    assert "| all | 5 | 2 | 4 | 2 / 2 / 0 / 1 | +40.0 pp" in text
+
+
+def test_compare_refuses_a_trial_whose_pose_differs(tmp_path):
+    from fabric_imitation.tools.report import Compare
+
+    base = _write(tmp_path / "base.jsonl", [_trial("ours", 0, True)])
+    moved = _trial("ours", 0, True, pose=[0.51, 0.0, 10.0])
+    new = _write(tmp_path / "new.jsonl", [moved])
+    out = tmp_path / "compare.md"
+    with pytest.raises(InputError, match="different pose"):
+        Compare(base=[base], new=[new], out=out)
+    assert not out.exists()
+    other = _write(tmp_path / "other.jsonl", [_trial("ours", 0, True, pose_seed=5)])
+    with pytest.raises(InputError, match="share no trial"):
+        Compare(base=[base], new=[other])
+    with pytest.raises(InputError, match="no trials of method 'zero'"):
+        Compare(base=[base], new=[base], method="zero")

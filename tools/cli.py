@@ -65,6 +65,10 @@ DESCRIPTIONS = {
     "report": "Build the evaluation's tables and figures (success with Wilson "
     "intervals, paired comparisons against ours, stop against count) from "
     "evaluate's trial lines.",
+    "compare": "Paired comparison of two runs of one method on the same poses "
+    "(before and after a change, a mechanism off and on): the difference of "
+    "success rates with Newcombe's interval and McNemar's test, per task and "
+    "over all.",
     "diagram": "Draw the imitation diagram (its systems, ports and connections) "
     "as SVG, with its Graphviz source beside it: README's picture.",
 }
@@ -731,6 +735,28 @@ def _report(args) -> dict:
     from fabric_imitation.tools.report import Report
 
     return Report(runs=args.runs, out=args.out)
+
+
+def _add_compare(p):
+    p.add_argument(
+        "--base",
+        nargs="+",
+        type=Path,
+        required=True,
+        help="trial lines of the base run",
+    )
+    p.add_argument(
+        "--new", nargs="+", type=Path, required=True, help="trial lines of the new run"
+    )
+    p.add_argument("--method", default="ours", help="method compared (default ours)")
+    p.add_argument("--out", type=Path, default=None, help="also write Markdown here")
+
+
+@command("compare")(_add_compare)
+def _compare(args) -> dict:
+    from fabric_imitation.tools.report import Compare
+
+    return Compare(base=args.base, new=args.new, method=args.method, out=args.out)
 
 
 def _add_diagram(p):

@@ -652,3 +652,160 @@ def _StopVsCount(trials: list[Trial], protocols: list[str]) -> list[dict]:
                         | PairedStats(pairs)
                     )
     return found
+
+
+# Two trials are on the same pose where their poses and cloth starts agree
+# to this (metres, degrees as written in the trial lines).
+SAME_POSE_TOLERANCE = 1e-4
+
+
+def Compare(
+    *,
+    base: list[Path],
+    new: list[Path],
+    method: str = "ours",
+    out: Path | None = None,
+) -> dict:
+    """Paired comparison of two runs of `method` on the same poses: `base`
+    (for example the code before a change, or a mechanism off) against
+    `new`. Trials pair by scenario, protocol, pose seed, trial and sampling
+    seed, and must have the same object pose and cloth start; per scenario
+    and over all of them: the 2 x 2 counts, the difference new - base of the
+    success rates with Newcombe's interval, McNemar's exact p-value, and each
+    side's true rule breaks and collisions. Each side is checked as `report`
+    checks a table (one code, priors and referee fingerprint); the sides may
+    differ in anything. Writes Markdown to `out` when given."""
+    sides = {}
+    for name, runs in (("base", base), ("new", new)):
+        trials = [
+            t for t in LoadTrials([Path(p) for p in runs]) if t["method"] == method
+        ]
+        if not trials:
+            raise InputError(f"--{name}: no trials of method {method!r}")
+        codes = sorted({t["fingerprint"]["code"] for t in trials})
+        if len(codes) > 1:
+            raise InputError(
+                f"--{name}: trials of more than one code fingerprint "
+                f"({', '.join(codes)})"
+            )
+        violations = sorted({t["on_violation"] for t in trials})
+        if len(violations) > 1:
+            raise InputError(
+                f"--{name}: trials under more than one --on-violation "
+                f"({', '.join(violations)})"
+            )
+        sides[name] = trials
+    if sides["base"][0]["on_violation"] != sides["new"][0]["on_violation"]:
+        raise InputError(
+            "--base and --new ran under different --on-violation rules: "
+            f"{sides['base'][0]['on_violation']} and {sides['new'][0]['on_violation']}"
+        )
+    pairs = [
+        (n, b)
+        for b, n in Pairs(sides["base"], sides["new"])
+        if b["sampling_seed"] == n["sampling_seed"]
+    ]
+    if not pairs:
+        raise InputError("--base and --new share no trial (same poses and seeds)")
+    for n, b in pairs:
+        for field in ("pose", "cloth_start"):
+            if field not in b.row or field not in n.row:
+                continue
+            if not np.allclose(b[field], n[field], atol=SAME_POSE_TOLERANCE):
+                raise InputError(
+                    f"{b.where} and {n.where}: the same trial has a different "
+                    f"{field} ({b[field]} against {n[field]})"
+                )
+
+    def side_counts(trials) -> dict:
+        rows = [t.row for t in trials]
+        return {
+            "successes": sum(r["success"] for r in rows),
+            "rule_breaks_true": sum(
+                int(r["rule_breaks_true"].get("any", 0))
+                for r in rows
+                if isinstance(r.get("rule_breaks_true"), dict)
+            ),
+            "collisions": sum(int(r.get("collisions") or 0) for r in rows),
+        }
+
+    def summary(chosen) -> dict:
+        stats = PairedStats(chosen)
+        return {
+            "pairs": stats["pairs"],
+            "base": side_counts([b for _, b in chosen]),
+            "new": side_counts([n for n, _ in chosen]),
+            "both": stats["both"],
+            "new_only": stats["first_only"],
+            "base_only": stats["second_only"],
+            "neither": stats["neither"],
+            "difference": stats["difference"],
+            "newcombe95": stats["newcombe95"],
+            "mcnemar_p": stats["mcnemar_p"],
+        }
+
+    scenarios = _order([n["scenario"] for n, _ in pairs], ())
+    rows = {s: summary([p for p in pairs if p[0]["scenario"] == s]) for s in scenarios}
+    result = {
+        "method": method,
+        "on_violation": sides["base"][0]["on_violation"],
+        "base": [str(p) for p in base],
+        "new": [str(p) for p in new],
+        "base_code": sides["base"][0]["fingerprint"]["code"],
+        "new_code": sides["new"][0]["fingerprint"]["code"],
+        "unpaired": {
+            "base": len(sides["base"]) - len(pairs),
+            "new": len(sides["new"]) - len(pairs),
+        },
+        "pose_seeds": sorted({n["pose_seed"] for n, _ in pairs}),
+        "scenarios": rows,
+        "all": summary(pairs),
+    }
+    if out is not None:
+        out = Path(out)
+        if not out.parent.is_dir():
+            raise InputError(f"--out {out}: directory {out.parent} does not exist")
+        temp = _temp_beside(out)
+        try:
+            temp.write_text(_compare_markdown(result))
+            os.replace(temp, out)
+        finally:
+            temp.unlink(missing_ok=True)
+    return result
+
+
+def _compare_markdown(result: dict) -> str:
+    command = " ".join(
+        [
+            "fabric-imitate compare --base",
+            *result["base"],
+            "--new",
+            *result["new"],
+            "--method",
+            result["method"],
+        ]
+    )
+    lines = [
+        f"Generated by `{command}`; do not edit by hand.",
+        "",
+        f"`{result['method']}`, on violation `{result['on_violation']}`, pose "
+        f"seeds {', '.join(map(str, result['pose_seeds']))}; code "
+        f"`{result['base_code']}` (base) against `{result['new_code']}` (new).",
+        "",
+        "| task | pairs | base | new | both / new only / base only / neither "
+        "| difference (new - base) | 95 % interval | McNemar p | rule breaks "
+        "base / new | collisions base / new |",
+        "|---|---|---|---|---|---|---|---|---|---|",
+    ]
+    for name, row in [*result["scenarios"].items(), ("all", result["all"])]:
+        low, high = row["newcombe95"]
+        lines.append(
+            f"| {name} | {row['pairs']} | {row['base']['successes']} | "
+            f"{row['new']['successes']} | {row['both']} / {row['new_only']} / "
+            f"{row['base_only']} / {row['neither']} | "
+            f"{100 * row['difference']:+.1f} pp | [{100 * low:+.1f}, "
+            f"{100 * high:+.1f}] pp | {row['mcnemar_p']:.3g} | "
+            f"{row['base']['rule_breaks_true']} / {row['new']['rule_breaks_true']} | "
+            f"{row['base']['collisions']} / {row['new']['collisions']} |"
+        )
+    return "\n".join(lines) + "\n"
