@@ -51,7 +51,7 @@ from fabric_imitation.learning.state import (
     corner_indices,
     world_to_object,
 )
-from fabric_imitation.learning.tracker import KeypointTracker
+from fabric_imitation.learning.tracker import KeypointTracker, track_states
 from fabric_imitation.scenarios.schema import Scenario
 from fabric_imitation.systems.imitation import (
     CfmController,
@@ -83,14 +83,36 @@ EVENT_STAGGER = 1e-3  # [s]
 
 
 def DemoStates(
-    priors: Priors, demo: Demo, config: RewardConfig | None = None
+    priors: Priors,
+    demo: Demo,
+    config: RewardConfig | None = None,
+    tracker: KeypointTracker | None = None,
 ) -> np.ndarray:
     """S_E^1..T: f_R on every demo frame, in the demo's object frame, with
     the grasped corners tracked through the frames (track_grasped_corners;
-    `config`: the scenario's reward settings)."""
+    `config`: the scenario's reward settings). With a `tracker` (object
+    frame), the states are tracked as the imitation's are, the demo's
+    grasped corners standing in for the grippers the video does not
+    measure, so demo and imitation states come from the same estimator."""
     p_W, spread = priors.keypoints_and_spread(demo.mask, demo.depth)
     states = world_to_object(p_W, demo.object_pose)
-    return track_grasped_corners(states, spread, config or RewardConfig())
+    states = track_grasped_corners(states, spread, config or RewardConfig())
+    if tracker is None:
+        return states
+    idx = corner_indices(priors.num_keypoints)
+    return track_states(tracker, states, spread, states[:, [idx["s1"], idx["s2"]]])
+
+
+def _Tracker(scenario: Scenario, priors: Priors) -> KeypointTracker | None:
+    """The scenario's keypoint tracker in the object frame, or None."""
+    if not scenario.tracker.enabled:
+        return None
+    return KeypointTracker(
+        forward=priors.forward,
+        num_keypoints=priors.num_keypoints,
+        config=scenario.tracker,
+        object_size=scenario.object.size if scenario.object.kind != "none" else None,
+    )
 
 
 def DefaultDemoDir(scenario_name: str, scenario: Scenario) -> Path:
@@ -152,7 +174,7 @@ def PrepareImitation(
         )
     if priors.prior_states is None:
         raise InputError(f"priors {priors_dir} carry no prior states for f_A")
-    states = DemoStates(priors, demo, scenario.reward)
+    states = DemoStates(priors, demo, scenario.reward, _Tracker(scenario, priors))
     model, info = learn_from_demo(states, priors.prior_states, scenario.reward)
     nets = None
     if baselines:
@@ -364,16 +386,6 @@ def _KeypointEstimator(
     scenario: Scenario, priors: Priors, start: float
 ) -> KeypointEstimator:
     cam = scenario.camera
-    tracker = None
-    if scenario.tracker.enabled:
-        tracker = KeypointTracker(
-            forward=priors.forward,
-            num_keypoints=priors.num_keypoints,
-            config=scenario.tracker,
-            object_size=(
-                scenario.object.size if scenario.object.kind != "none" else None
-            ),
-        )
     return KeypointEstimator(
         priors=priors,
         num_keypoints=priors.num_keypoints,
@@ -383,7 +395,7 @@ def _KeypointEstimator(
         offset=start,
         misread_grasp_error=scenario.safety.misread_grasp_error,
         max_side_length=scenario.safety.misread_side_stretch * scenario.cloth.size[1],
-        tracker=tracker,
+        tracker=_Tracker(scenario, priors),
     )
 
 

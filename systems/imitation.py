@@ -12,8 +12,10 @@ from fabric_imitation.learning.safety import cloth_on_object
 from fabric_imitation.learning.state import (
     PlanarPose,
     corner_indices,
+    object_to_world,
     world_to_object,
 )
+from fabric_imitation.learning.tracker import KeypointTracker
 from fabric_imitation.systems.referee import HALT_COLLISION, HALT_RULE_BREAK
 from pydrake.common.value import AbstractValue
 from pydrake.math import RigidTransform
@@ -90,14 +92,16 @@ class KeypointEstimator(LeafSystem):
     the side can reach), the frame counts as misread, and
     ``remembered_far_corners`` gives s3 and s4 of the last frame read
     within that (NaN while the frame is read right, or before any was);
-    the keypoints themselves stay f_R's.
+    the keypoints themselves stay the estimate (f_R's, or the tracker's).
 
     With a ``tracker`` (learning/tracker.py), the ``keypoints`` output is
     f_R's reading fused with f_D's prediction from the previous estimate and
     the grippers' measured move since the last update, so a corner hidden
     under the cloth or behind the object keeps a predicted place (estimate
     and variance are discrete state). Without the ``grippers`` input there
-    is no move to predict with, and the output is f_R's reading.
+    is no move to predict with, and the output is f_R's reading. The misread
+    test still judges f_R's own reading; the far corners it remembers are
+    then the tracked ones of the last frame read right.
 
     Input ports: ``mask`` (ImageGrey8U), ``depth`` (ImageDepth32F),
     ``object_pose`` (RigidTransform X_WO), ``grippers`` (6, optional: left
@@ -122,7 +126,7 @@ class KeypointEstimator(LeafSystem):
         offset: float = 0.0,
         misread_grasp_error: float = np.inf,
         max_side_length: float = np.inf,
-        tracker=None,
+        tracker: KeypointTracker | None = None,
     ):
         super().__init__()
         self._priors = priors
@@ -145,11 +149,13 @@ class KeypointEstimator(LeafSystem):
         self._last_good_far = self.DeclareDiscreteState(BasicVector(np.full(6, np.nan)))
         self._remembered = self.DeclareDiscreteState(BasicVector(np.full(6, np.nan)))
         # The tracker's estimate is the `keypoints` state; its variance per
-        # keypoint and the grippers at the last update (world; NaN before).
+        # keypoint, the grippers (world) and the object pose [x, y, yaw_rad]
+        # at the last update (NaN before the first).
         self._variance = self.DeclareDiscreteState(
             BasicVector(np.full(num_keypoints, np.nan))
         )
         self._last_grippers = self.DeclareDiscreteState(BasicVector(np.full(6, np.nan)))
+        self._last_pose = self.DeclareDiscreteState(BasicVector(np.full(3, np.nan)))
         self.DeclarePeriodicDiscreteUpdateEvent(period, offset, self._update)
         self.DeclareForcedDiscreteUpdateEvent(self._update)
         self.DeclareStateOutputPort("keypoints", self._state)
@@ -189,14 +195,26 @@ class KeypointEstimator(LeafSystem):
         discrete_state.get_mutable_vector(self._remembered).SetFromVector(remembered)
         return EventStatus.Succeeded()
 
-    def _track(self, context, discrete_state, p_O, spread, grippers, pose):
-        """The tracker's step from the estimate of the last update; stores
-        the new estimate's variance and the grippers. Returns the estimate."""
+    def _track(
+        self,
+        context,
+        discrete_state,
+        p_O: np.ndarray,
+        spread: np.ndarray,
+        grippers: np.ndarray | None,
+        pose: PlanarPose,
+    ) -> np.ndarray:
+        """The tracker's step from the estimate of the last update (moved
+        into this update's object frame, should the object have moved);
+        stores the new estimate's variance, the grippers and the pose.
+        Returns the estimate (M, 3), object frame."""
         variance = context.get_discrete_state(self._variance).value()
+        last_pose = context.get_discrete_state(self._last_pose).value()
         previous = None
-        if np.all(np.isfinite(variance)):
-            estimate = context.get_discrete_state(self._state).value()
-            previous = (estimate.reshape(-1, 3), variance)
+        if np.all(np.isfinite(variance)) and np.all(np.isfinite(last_pose)):
+            estimate = context.get_discrete_state(self._state).value().reshape(-1, 3)
+            estimate = world_to_object(object_to_world(estimate, last_pose), pose)
+            previous = (estimate, variance)
         grasped = action = None
         if grippers is not None:
             grasped = world_to_object(grippers, pose)
@@ -208,6 +226,9 @@ class KeypointEstimator(LeafSystem):
             )
         x, v = self._tracker.step(previous, p_O, spread, action=action, grasped=grasped)
         discrete_state.get_mutable_vector(self._variance).SetFromVector(v)
+        discrete_state.get_mutable_vector(self._last_pose).SetFromVector(
+            np.asarray(pose)
+        )
         return x
 
 

@@ -290,3 +290,76 @@ def test_compare_refuses_a_trial_whose_pose_differs(tmp_path):
         Compare(base=[base], new=[other])
     with pytest.raises(InputError, match="no trials of method 'zero'"):
         Compare(base=[base], new=[base], method="zero")
+
+
+def test_compare_refuses_what_cannot_be_paired(tmp_path):
+    """Sides under different stopping rules, a side of two code fingerprints,
+    a cloth start on one side only or different, different referees, --out
+    on a run file or in a missing folder; another sampling seed does not
+    pair."""
+    from fabric_imitation.tools.report import Compare
+
+    def run(name, *rows):
+        return _write(tmp_path / f"{name}.jsonl", list(rows))
+
+    base = run("base", _trial("ours", 0, True, cloth_start=[0.0, 0.0, 0.0]))
+    cases = {
+        "different --on-violation": _trial(
+            "ours", 0, True, "count", cloth_start=[0.0, 0.0, 0.0]
+        ),
+        "only one of the two records 'cloth_start'": _trial("ours", 0, True),
+        "different cloth_start": _trial("ours", 0, True, cloth_start=[0.01, 0.0, 0.0]),
+        "different referees": _trial(
+            "ours",
+            0,
+            True,
+            cloth_start=[0.0, 0.0, 0.0],
+            fingerprint=FINGERPRINT | {"referee": "r2"},
+        ),
+        "share no trial": _trial(
+            "ours", 0, True, cloth_start=[0.0, 0.0, 0.0], sampling_seed=1
+        ),
+    }
+    for i, (message, row) in enumerate(cases.items()):
+        with pytest.raises(InputError, match=message):
+            Compare(base=[base], new=[run(f"new{i}", row)])
+    two_codes = run(
+        "two",
+        _trial("ours", 0, True, cloth_start=[0.0, 0.0, 0.0]),
+        _trial(
+            "ours",
+            1,
+            True,
+            cloth_start=[0.0, 0.0, 0.0],
+            protocol="wide",
+            fingerprint=FINGERPRINT | {"code": "other"},
+        ),
+    )
+    with pytest.raises(InputError, match="more than one code fingerprint"):
+        Compare(base=[base], new=[two_codes])
+    with pytest.raises(InputError, match="is one of the run files"):
+        Compare(base=[base], new=[base], out=base)
+    with pytest.raises(InputError, match="does not exist"):
+        Compare(base=[base], new=[base], out=tmp_path / "no" / "c.md")
+
+
+def test_compare_counts_per_task_and_the_unpaired(tmp_path):
+    from fabric_imitation.tools.report import Compare
+
+    base = _write(
+        tmp_path / "base.jsonl",
+        [_trial("ours", i, i < 2) for i in range(3)]
+        + [_trial("ours", i, False, scenario="hang") for i in range(2)],
+    )
+    new = _write(
+        tmp_path / "new.jsonl",
+        [_trial("ours", i, True) for i in range(2)]
+        + [_trial("ours", i, i == 0, scenario="hang") for i in range(2)],
+    )
+    result = Compare(base=[base], new=[new])
+    assert list(result["scenarios"]) == ["box", "hang"]
+    assert result["unpaired"] == {"base": 1, "new": 0}
+    box, hang = result["scenarios"]["box"], result["scenarios"]["hang"]
+    assert (box["pairs"], box["both"], box["new_only"]) == (2, 2, 0)
+    assert (hang["pairs"], hang["new_only"], hang["neither"]) == (2, 1, 1)
+    assert result["all"]["difference"] == pytest.approx(0.25)

@@ -17,7 +17,8 @@ from fabric_imitation.learning.tracker import (
 )
 from fabric_imitation.scenarios.loader import LoadScenario
 from fabric_imitation.systems.imitation import KeypointEstimator
-from pydrake.math import RigidTransform
+from fabric_imitation.tools.bench import TRACKER_OFF_M, TRACKER_SURE_SPREAD_PX
+from pydrake.math import RigidTransform, RotationMatrix
 from pydrake.systems.sensors import ImageDepth32F, ImageGrey8U
 
 M = 8
@@ -48,42 +49,80 @@ def tracker(**config):
 
 
 @pytest.fixture(scope="module")
-def hang_run():
+def hang():
     priors = load_priors(DEFAULT_PRIORS)
+    assert priors.num_keypoints == M
     demo = LoadDemo(DEFAULT_DEMOS / "hang")
     truth = np.load(demo.path / "ground_truth.npz")["keypoints_W"]
-    run = track_frames(
-        priors,
-        demo.mask,
-        demo.depth,
-        truth[:, GRASPED],
-        TrackerConfig(enabled=True),
-        object_pose=demo.object_pose,
-    )
-    return run, truth
+
+    def run(forward=None):
+        class Swapped:  # the priors with another f_D
+            def __getattr__(self, name):
+                return forward if name == "forward" else getattr(priors, name)
+
+        return track_frames(
+            priors if forward is None else Swapped(),
+            demo.mask,
+            demo.depth,
+            truth[:, GRASPED],
+            TrackerConfig(enabled=True),
+            object_pose=demo.object_pose,
+        )
+
+    return run, truth, priors, demo
 
 
-def test_tracked_far_corners_beat_f_r_where_the_towel_hides_them(hang_run):
+def test_tracked_far_corners_beat_f_r_where_the_towel_hides_them(hang):
     """The shipped hang demo: where the towel's far corners hang behind the
     plate and f_R puts them more than 8 cm off, the tracked corners are at
-    least twice as close to the true ones."""
-    run, truth = hang_run
-    e_fr = np.linalg.norm(run["measured"] - truth, axis=-1)[:, FAR]
-    e_tr = np.linalg.norm(run["tracked"] - truth, axis=-1)[:, FAR]
-    off = e_fr > 0.08
+    least twice as close to the true ones. f_D's prediction is part of it:
+    with no prediction (each keypoint stays where it was), the tracked
+    keypoints other than the grasped corners are further off."""
+    run, truth, _, _ = hang
+    tracked = run()
+    e_fr = np.linalg.norm(tracked["measured"] - truth, axis=-1)[:, FAR]
+    e_tr = np.linalg.norm(tracked["tracked"] - truth, axis=-1)[:, FAR]
+    off = e_fr > TRACKER_OFF_M
     assert off.sum() >= 10
     assert e_tr[off].mean() <= 0.5 * e_fr[off].mean()
+    others = [k for k in range(M) if k not in GRASPED]
+    still = run(lambda S, A: S)
+    e_still = np.linalg.norm(still["tracked"] - truth, axis=-1)[:, others]
+    e_all = np.linalg.norm(tracked["tracked"] - truth, axis=-1)[:, others]
+    assert e_still.mean() > e_all.mean() + 0.005
 
 
-def test_tracker_follows_f_r_where_it_is_sure(hang_run):
+def test_tracker_follows_f_r_where_it_is_sure(hang):
     """Where f_R's heatmap is sharp (spread <= 4 px), the tracked keypoint
     stays within 1 cm of f_R's."""
-    run, _ = hang_run
+    run, _, _, _ = hang
+    tracked = run()
     others = [k for k in range(M) if k not in GRASPED]
-    sure = run["spread"][:, others] <= 4.0
+    sure = tracked["spread"][:, others] <= TRACKER_SURE_SPREAD_PX
     assert sure.sum() >= 10
-    gap = np.linalg.norm(run["tracked"] - run["measured"], axis=-1)[:, others]
+    gap = np.linalg.norm(tracked["tracked"] - tracked["measured"], axis=-1)[:, others]
     assert gap[sure].max() <= 0.01
+
+
+def test_tracked_demo_states_are_closer_to_the_truth_on_hang(hang):
+    """With a tracker, the demo's states are tracked as the imitation's are
+    (the demo's own grasped-corner track standing in for grippers): the far
+    corners where f_R is off come closer to the truth."""
+    from fabric_imitation.diagrams.imitation import DemoStates, _Tracker
+    from fabric_imitation.learning.state import world_to_object
+
+    _, truth, priors, demo = hang
+    scenario = LoadScenario(scenario_name="hang")
+    plain = DemoStates(priors, demo, scenario.reward)
+    scenario.tracker.enabled = True
+    tracked = DemoStates(priors, demo, scenario.reward, _Tracker(scenario, priors))
+    truth_O = world_to_object(truth, demo.object_pose)
+    e_plain = np.linalg.norm(plain - truth_O, axis=-1)[:, FAR]
+    e_tracked = np.linalg.norm(tracked - truth_O, axis=-1)[:, FAR]
+    off = e_plain > TRACKER_OFF_M
+    assert off.sum() >= 10
+    assert e_tracked[off].mean() < 0.75 * e_plain[off].mean()
+    np.testing.assert_allclose(tracked[:, GRASPED], plain[:, GRASPED])
 
 
 def test_first_frame_and_no_move_take_f_r_and_the_grippers():
@@ -99,20 +138,37 @@ def test_first_frame_and_no_move_take_f_r_and_the_grippers():
 
 
 def test_fusion_weighs_prediction_and_reading_by_their_errors():
-    """A diffuse heatmap leaves the keypoint where f_D puts it; a sharp one
-    takes f_R's reading; the variance shrinks on fusion."""
-    dut = tracker(process_noise=0.02)
+    """Per keypoint: gain g = v- / (v- + r), x = x- + g (z - x-), v = (1 - g)
+    v-, with v- = v + q^2 and r = (base + per_px2 spread^2)^2. A diffuse
+    heatmap leaves the keypoint near where f_D puts it, a sharp one near
+    f_R's reading."""
+    config = dict(process_noise=0.02, measurement_base=0.006, measurement_per_px2=3e-4)
+    dut = tracker(**config)
     x0 = square()
-    v0 = np.full(M, 1e-4)
+    v0 = np.linspace(1e-5, 1e-3, M)
     move = np.array([0.01, 0.0, 0.0, 0.01, 0.0, 0.0])
     predicted = x0 + [0.01, 0.0, 0.0]
     reading = predicted + [0.0, 0.10, 0.0]
-    spread = np.array([40.0] * 4 + [0.0] * 4)
+    spread = np.array([40.0] * 4 + [0.0, 2.0, 4.0, 8.0])
     x, v = dut.step((x0, v0), reading, spread, action=move)
-    np.testing.assert_allclose(x[:4], predicted[:4], atol=0.002)
-    np.testing.assert_allclose(x[4:], reading[4:], atol=0.012)
     prior = v0 + 0.02**2
-    assert (v < prior).all()
+    r = (0.006 + 3e-4 * spread**2) ** 2
+    gain = prior / (prior + r)
+    np.testing.assert_allclose(
+        x, predicted + gain[:, None] * (reading - predicted), atol=1e-7
+    )
+    np.testing.assert_allclose(v, (1 - gain) * prior, rtol=1e-12)
+    assert (gain[:4] < 0.01).all() and (gain[4:6] > 0.9).all()
+
+
+def test_a_broken_estimate_starts_again_from_f_r():
+    dut = tracker()
+    z = square()
+    bad = (np.full((M, 3), np.nan), np.full(M, 1e-4))
+    move = np.zeros(6)
+    x, v = dut.step(bad, z, np.full(M, 3.0), action=move)
+    np.testing.assert_allclose(x, z)
+    assert np.all(np.isfinite(v))
 
 
 def test_measurement_model_and_its_fit():
@@ -164,45 +220,106 @@ class SpreadPriors:
         return self.points, self.spread
 
 
-def test_estimator_tracks_with_the_grippers_measured_move():
-    """With a tracker, the second update predicts from the first estimate and
-    the grippers' move; a corner f_R cannot see (diffuse heatmap) stays
-    where the prediction puts it, not where f_R reads it."""
-    start = square(0.0, 0.2)
-    priors = SpreadPriors(start, np.full(M, 3.0))
+def left_forward(S, A):
+    """A stand-in f_D: every keypoint moves by the left gripper's move."""
+    S = np.asarray(S, dtype=np.float64)
+    return S + np.asarray(A, dtype=np.float64)[..., None, :3]
+
+
+def _estimator(priors, **kwargs):
     dut = KeypointEstimator(
-        priors=priors,
-        num_keypoints=M,
-        width=32,
-        height=24,
-        period=0.2,
-        tracker=tracker(),
+        priors=priors, num_keypoints=M, width=32, height=24, period=0.2, **kwargs
     )
     context = dut.CreateDefaultContext()
     dut.GetInputPort("mask").FixValue(context, ImageGrey8U(32, 24))
     dut.GetInputPort("depth").FixValue(context, ImageDepth32F(32, 24))
-    dut.GetInputPort("object_pose").FixValue(context, RigidTransform())
-    grippers = dut.GetInputPort("grippers")
+    return dut, context
 
-    def update(g):
-        grippers.FixValue(context, np.ravel(g))
-        state = context.get_discrete_state().Clone()
-        dut.CalcForcedDiscreteVariableUpdate(context, state)
-        context.SetDiscreteState(state)
-        return dut.GetOutputPort("keypoints").Eval(context).reshape(M, 3)
 
-    first = update(start[GRASPED])
-    np.testing.assert_allclose(first, start, atol=1e-9)
-    move = np.array([0.0, 0.02, 0.0])
+def _update(dut, context, grippers=None):
+    if grippers is not None:
+        dut.GetInputPort("grippers").FixValue(context, np.ravel(grippers))
+    state = context.get_discrete_state().Clone()
+    dut.CalcForcedDiscreteVariableUpdate(context, state)
+    context.SetDiscreteState(state)
+    return dut.GetOutputPort("keypoints").Eval(context).reshape(M, 3)
+
+
+def test_estimator_tracks_with_the_grippers_measured_move():
+    """The object turned 30 degrees and moved: the second update predicts
+    from the first estimate and the grippers' move, both in the object
+    frame; a corner f_R cannot see (diffuse heatmap) stays where the
+    prediction puts it, not where f_R reads it. A fresh context starts
+    again from f_R."""
+    from fabric_imitation.learning.state import object_to_world
+
+    pose = np.array([0.1, -0.14, np.radians(30.0)])
+    X_WO = RigidTransform(RotationMatrix.MakeZRotation(pose[2]), [*pose[:2], 0.0])
+    start_O = square(0.0, 0.2)
+    start_W = object_to_world(start_O, pose)
+    priors = SpreadPriors(start_W, np.full(M, 3.0))
+    dut, context = _estimator(
+        priors,
+        tracker=KeypointTracker(
+            forward=left_forward, num_keypoints=M, config=TrackerConfig()
+        ),
+    )
+    dut.GetInputPort("object_pose").FixValue(context, X_WO)
+    first = _update(dut, context, start_W[GRASPED])
+    np.testing.assert_allclose(first, start_O, atol=1e-9)
+    # The left gripper moves 2 cm along the object's y, the right one does
+    # not: left_forward moves every keypoint by the left move.
+    move_O = np.array([0.0, 0.02, 0.0])
+    grippers_O = start_O[GRASPED] + [move_O, [0.0, 0.0, 0.0]]
+    grippers_W = object_to_world(grippers_O, pose)
     # f_R's guess, up by 8 cm, diffuse where it cannot see the far side.
-    priors.points = start + [0.0, 0.0, 0.08]
+    priors.points = object_to_world(start_O + [0.0, 0.0, 0.08], pose)
     priors.spread = np.array([3.0] * 4 + [40.0] * 4)
-    second = update(start[GRASPED] + move)
-    np.testing.assert_allclose(second[GRASPED], start[GRASPED] + move, atol=1e-9)
-    np.testing.assert_allclose(second[4:], start[4:] + move, atol=0.003)
+    second = _update(dut, context, grippers_W)
+    np.testing.assert_allclose(second[GRASPED], grippers_O, atol=1e-9)
+    np.testing.assert_allclose(second[4:], start_O[4:] + move_O, atol=0.003)
+    fresh = dut.CreateDefaultContext()
+    dut.GetInputPort("mask").FixValue(fresh, ImageGrey8U(32, 24))
+    dut.GetInputPort("depth").FixValue(fresh, ImageDepth32F(32, 24))
+    dut.GetInputPort("object_pose").FixValue(fresh, X_WO)
+    again = _update(dut, fresh, grippers_W)
+    np.testing.assert_allclose(again[4:], start_O[4:] + [0.0, 0.0, 0.08], atol=1e-9)
+
+
+def test_estimator_without_grippers_gives_f_r_reading():
+    """No grippers input: no move to predict with, so each update is f_R's
+    reading as it is."""
+    start = square(0.0, 0.2)
+    priors = SpreadPriors(start, np.full(M, 3.0))
+    dut, context = _estimator(
+        priors,
+        tracker=KeypointTracker(
+            forward=left_forward, num_keypoints=M, config=TrackerConfig()
+        ),
+    )
+    dut.GetInputPort("object_pose").FixValue(context, RigidTransform())
+    np.testing.assert_allclose(_update(dut, context), start, atol=1e-9)
+    priors.points = start + [0.0, 0.0, 0.08]
+    priors.spread = np.full(M, 40.0)
+    np.testing.assert_allclose(_update(dut, context), priors.points, atol=1e-9)
+
+
+def test_the_scenario_switches_the_tracker_on():
+    from fabric_imitation.diagrams.imitation import _KeypointEstimator
+
+    class Priors:
+        num_keypoints = M
+        forward = staticmethod(left_forward)
+
+    scenario = LoadScenario(scenario_name="box")
+    assert _KeypointEstimator(scenario, Priors(), 0.0)._tracker is None
+    scenario = LoadScenario(
+        scenario_name="box", scenario_text="tracker: {enabled: true}"
+    )
+    assert _KeypointEstimator(scenario, Priors(), 0.0)._tracker is not None
     with pytest.raises(ValueError, match="tracker has 8 keypoints"):
         KeypointEstimator(
-            priors=priors,
+            priors=Priors(),
             num_keypoints=12,
             width=32,
             height=24,

@@ -12,6 +12,7 @@ time (the latter is what a loaded machine does not change).
 
 import contextlib
 import dataclasses as dc
+import hashlib
 import json
 import os
 import platform
@@ -704,6 +705,30 @@ def _plot_occlusion(table: dict, path: Path) -> None:
     plt.close(fig)
 
 
+# `bench tracker`'s variants: the tracker as configured (f_D predicts), with
+# the object projection, with every keypoint moved by the mean of the two
+# grippers' moves instead of f_D ("rigid"), and with no move at all ("still").
+TRACKER_VARIANTS = ("tracked", "object_projection", "rigid_prediction", "no_prediction")
+TRACKER_PREDICTIONS = {
+    "tracked": None,
+    "object_projection": None,
+    "rigid_prediction": lambda S, A: S + (A[..., :3] + A[..., 3:])[..., None, :] / 2,
+    "no_prediction": lambda S, A: S,
+}
+
+
+class _WithForward:
+    """`priors` with f_D replaced by `forward` (None: f_D as it is)."""
+
+    def __init__(self, priors, forward):
+        self._priors, self._forward = priors, forward
+
+    def __getattr__(self, name: str):
+        if name == "forward" and self._forward is not None:
+            return self._forward
+        return getattr(self._priors, name)
+
+
 # f_R is "sure" of a keypoint whose heatmap spread is at most this [px].
 TRACKER_SURE_SPREAD_PX = 4.0
 # A far corner "f_R misreads": more than this [m] from the true one.
@@ -716,11 +741,14 @@ def BenchTracker(
     priors_dir: Path | None = None,
     out: Path | None = None,
 ) -> dict:
-    """The keypoint tracker (learning/tracker.py) against f_R alone on the
-    shipped demos' frames, both compared with the simulator's true
-    keypoints; the grippers' moves are those of the true grasped corners.
-    Also fits f_R's error model (error against heatmap spread) on the same
-    frames. Writes JSON and, next to it, a plot of the far corners' errors."""
+    """The keypoint tracker (learning/tracker.py, its default settings)
+    against f_R alone on the shipped demos' frames, both compared with the
+    simulator's true keypoints; the grippers' moves are those of the true
+    grasped corners. Also the tracker with other predictions in place of
+    f_D's (TRACKER_VARIANTS). Also fits, on the same frames, the two errors the
+    tracker's defaults take: f_R's mean error against heatmap spread and
+    f_D's one-step error (mean and root mean square). Writes JSON and, next
+    to it, a plot of the far corners' errors."""
     import torch
     from fabric_imitation.diagrams.imitation import DEFAULT_DEMOS, DEFAULT_PRIORS
     from fabric_imitation.learning.demo_io import LoadDemo
@@ -746,21 +774,24 @@ def BenchTracker(
         size = scenario.object.size if scenario.object.kind != "none" else None
         grasped = truth[:, [idx["s1"], idx["s2"]]]
         runs = {
-            projection: track_frames(
-                priors,
+            variant: track_frames(
+                _WithForward(priors, TRACKER_PREDICTIONS[variant]),
                 demo.mask,
                 demo.depth,
                 grasped,
-                dc.replace(config, object_projection=projection),
+                dc.replace(config, object_projection=variant == "object_projection"),
                 object_pose=demo.object_pose,
                 object_size=size,
             )
-            for projection in (False, True)
+            for variant in TRACKER_VARIANTS
         }
-        measured, spread = runs[False]["measured"], runs[False]["spread"]
+        measured, spread = runs["tracked"]["measured"], runs["tracked"]["spread"]
         e_fr = np.linalg.norm(measured - truth, axis=-1)
-        e_tr = np.linalg.norm(runs[False]["tracked"] - truth, axis=-1)
-        e_pr = np.linalg.norm(runs[True]["tracked"] - truth, axis=-1)
+        errors_of = {
+            v: np.linalg.norm(run["tracked"] - truth, axis=-1)
+            for v, run in runs.items()
+        }
+        e_tr = errors_of["tracked"]
         # f_D's one-step error from the true state and the true move.
         moves = (grasped[1:] - grasped[:-1]).reshape(-1, 6)
         e_fd = np.linalg.norm(
@@ -771,7 +802,9 @@ def BenchTracker(
         errors.append(e_fr[:, others].ravel())
         off = e_fr[:, far] > TRACKER_OFF_M
         sure = spread[:, others] <= TRACKER_SURE_SPREAD_PX
-        follow = np.linalg.norm(runs[False]["tracked"] - measured, axis=-1)[:, others]
+        follow = np.linalg.norm(runs["tracked"]["tracked"] - measured, axis=-1)[
+            :, others
+        ]
 
         def cm(x) -> float | None:
             return round(100 * float(np.mean(x)), 2) if np.size(x) else None
@@ -780,14 +813,12 @@ def BenchTracker(
             "frames": len(truth),
             "error_cm_mean": {
                 "f_R": cm(e_fr[:, others]),
-                "tracked": cm(e_tr[:, others]),
-                "tracked_with_object_projection": cm(e_pr[:, others]),
+                **{v: cm(e[:, others]) for v, e in errors_of.items()},
             },
             "far_corners_f_R_off": int(off.sum()),
             "far_corners_where_f_R_off_error_cm_mean": {
                 "f_R": cm(e_fr[:, far][off]),
-                "tracked": cm(e_tr[:, far][off]),
-                "tracked_with_object_projection": cm(e_pr[:, far][off]),
+                **{v: cm(e[:, far][off]) for v, e in errors_of.items()},
             },
             "f_D_one_step_error_cm_mean": cm(e_fd[:, others]),
             "sure_keypoints": int(sure.sum()),
@@ -812,9 +843,15 @@ def BenchTracker(
             "base_m": round(base, 5),
             "per_px2_m": float(f"{per_px2:.3g}"),
         },
-        "f_D_one_step_error_m_rms": round(
-            float(np.sqrt(np.mean(np.concatenate(one_step) ** 2))), 4
-        ),
+        "f_D_one_step_error_m": {
+            "mean": round(float(np.concatenate(one_step).mean()), 4),
+            "rms": round(float(np.sqrt(np.mean(np.concatenate(one_step) ** 2))), 4),
+        },
+        "priors_sha256": hashlib.sha256(
+            (Path(priors_dir or DEFAULT_PRIORS) / "priors.pt").read_bytes()
+        ).hexdigest()[:16],
+        "in_sample": "the error model and the tracker's errors come from the same "
+        "frames",
         "results": results,
     }
     if out is not None:

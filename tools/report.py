@@ -674,27 +674,19 @@ def Compare(
     success rates with Newcombe's interval, McNemar's exact p-value, and each
     side's true rule breaks and collisions. Each side is checked as `report`
     checks a table (one code, priors and referee fingerprint); the sides may
-    differ in anything. Writes Markdown to `out` when given."""
-    sides = {}
-    for name, runs in (("base", base), ("new", new)):
-        trials = [
-            t for t in LoadTrials([Path(p) for p in runs]) if t["method"] == method
-        ]
-        if not trials:
-            raise InputError(f"--{name}: no trials of method {method!r}")
-        codes = sorted({t["fingerprint"]["code"] for t in trials})
-        if len(codes) > 1:
-            raise InputError(
-                f"--{name}: trials of more than one code fingerprint "
-                f"({', '.join(codes)})"
-            )
-        violations = sorted({t["on_violation"] for t in trials})
-        if len(violations) > 1:
-            raise InputError(
-                f"--{name}: trials under more than one --on-violation "
-                f"({', '.join(violations)})"
-            )
-        sides[name] = trials
+    differ in anything but the referee. Writes Markdown to `out` when
+    given."""
+    base, new = [Path(p) for p in base], [Path(p) for p in new]
+    if out is not None:
+        out = Path(out)
+        if not out.parent.is_dir():
+            raise InputError(f"--out {out}: directory {out.parent} does not exist")
+        if any(out.resolve() == p.resolve() for p in [*base, *new]):
+            raise InputError(f"--out {out} is one of the run files")
+    sides = {
+        name: _compare_side(name, runs, method)
+        for name, runs in (("base", base), ("new", new))
+    }
     if sides["base"][0]["on_violation"] != sides["new"][0]["on_violation"]:
         raise InputError(
             "--base and --new ran under different --on-violation rules: "
@@ -708,14 +700,13 @@ def Compare(
     if not pairs:
         raise InputError("--base and --new share no trial (same poses and seeds)")
     for n, b in pairs:
-        for field in ("pose", "cloth_start"):
-            if field not in b.row or field not in n.row:
-                continue
-            if not np.allclose(b[field], n[field], atol=SAME_POSE_TOLERANCE):
-                raise InputError(
-                    f"{b.where} and {n.where}: the same trial has a different "
-                    f"{field} ({b[field]} against {n[field]})"
-                )
+        _check_same_trial(b, n)
+        if b["fingerprint"]["referee"] != n["fingerprint"]["referee"]:
+            raise InputError(
+                f"{b.where} and {n.where}: judged by different referees "
+                f"({b['fingerprint']['referee']} against "
+                f"{n['fingerprint']['referee']}); success means different things"
+            )
 
     def side_counts(trials) -> dict:
         rows = [t.row for t in trials]
@@ -744,13 +735,21 @@ def Compare(
             "mcnemar_p": stats["mcnemar_p"],
         }
 
-    scenarios = _order([n["scenario"] for n, _ in pairs], ())
+    scenarios = _order([n["scenario"] for n, _ in pairs], PAPER_TASKS)
     rows = {s: summary([p for p in pairs if p[0]["scenario"] == s]) for s in scenarios}
     result = {
         "method": method,
         "on_violation": sides["base"][0]["on_violation"],
         "base": [str(p) for p in base],
         "new": [str(p) for p in new],
+        "out": None if out is None else str(out),
+        "fingerprints": {
+            name: {
+                field: sorted({t["fingerprint"][field] for t in trials})
+                for field in (*TABLE_FINGERPRINTS, *ROW_FINGERPRINTS)
+            }
+            for name, trials in sides.items()
+        },
         "base_code": sides["base"][0]["fingerprint"]["code"],
         "new_code": sides["new"][0]["fingerprint"]["code"],
         "unpaired": {
@@ -762,9 +761,6 @@ def Compare(
         "all": summary(pairs),
     }
     if out is not None:
-        out = Path(out)
-        if not out.parent.is_dir():
-            raise InputError(f"--out {out}: directory {out.parent} does not exist")
         temp = _temp_beside(out)
         try:
             temp.write_text(_compare_markdown(result))
@@ -772,6 +768,51 @@ def Compare(
         finally:
             temp.unlink(missing_ok=True)
     return result
+
+
+def _compare_side(name: str, runs: list[Path], method: str) -> list[Trial]:
+    """One side of `Compare`: the trials of `method`, of one code and priors
+    fingerprint and one stopping rule."""
+    trials = [t for t in LoadTrials(runs) if t["method"] == method]
+    if not trials:
+        raise InputError(f"--{name}: no trials of method {method!r}")
+    for field in ("code", "priors"):
+        values = sorted({t["fingerprint"][field] for t in trials})
+        if len(values) > 1:
+            raise InputError(
+                f"--{name}: trials of more than one {field} fingerprint "
+                f"({', '.join(values)})"
+            )
+    violations = sorted({t["on_violation"] for t in trials})
+    if len(violations) > 1:
+        raise InputError(
+            f"--{name}: trials under more than one --on-violation "
+            f"({', '.join(violations)})"
+        )
+    return trials
+
+
+def _check_same_trial(b: Trial, n: Trial) -> None:
+    """Refuses a pair whose object pose or cloth start differ, or where one
+    side records a cloth start and the other does not."""
+    for field in ("pose", "cloth_start"):
+        if (field in b.row) != (field in n.row):
+            raise InputError(
+                f"{b.where} and {n.where}: only one of the two records {field!r}"
+            )
+        if field not in b.row:
+            continue
+        x, y = np.asarray(b[field], dtype=float), np.asarray(n[field], dtype=float)
+        if (
+            x.shape != y.shape
+            or not np.all(np.isfinite(x))
+            or not np.all(np.isfinite(y))
+            or not np.allclose(x, y, rtol=0.0, atol=SAME_POSE_TOLERANCE)
+        ):
+            raise InputError(
+                f"{b.where} and {n.where}: the same trial has a different "
+                f"{field} ({b[field]} against {n[field]})"
+            )
 
 
 def _compare_markdown(result: dict) -> str:
@@ -783,6 +824,7 @@ def _compare_markdown(result: dict) -> str:
             *result["new"],
             "--method",
             result["method"],
+            *(["--out", result["out"]] if result["out"] else []),
         ]
     )
     lines = [
