@@ -574,8 +574,7 @@ class Scenario:
     mpc: MpcConfig = dc.field(default_factory=MpcConfig)
     # The demo reward's settings (the defaults are the paper's R_E).
     reward: RewardConfig = dc.field(default_factory=RewardConfig)
-    # The keypoint tracker's settings (off by default: each step's state is
-    # f_R's reading of that frame).
+    # The keypoint tracker's settings (learning/tracker.py; on by default).
     tracker: TrackerConfig = dc.field(default_factory=TrackerConfig)
     collection: CollectionConfig = dc.field(default_factory=CollectionConfig)
 

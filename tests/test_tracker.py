@@ -114,7 +114,6 @@ def test_tracked_demo_states_are_closer_to_the_truth_on_hang(hang):
     _, truth, priors, demo = hang
     scenario = LoadScenario(scenario_name="hang")
     plain = DemoStates(priors, demo, scenario.reward)
-    scenario.tracker.enabled = True
     tracked = DemoStates(priors, demo, scenario.reward, _Tracker(scenario, priors))
     truth_O = world_to_object(truth, demo.object_pose)
     e_plain = np.linalg.norm(plain - truth_O, axis=-1)[:, FAR]
@@ -312,11 +311,11 @@ def test_the_scenario_switches_the_tracker_on():
         forward = staticmethod(left_forward)
 
     scenario = LoadScenario(scenario_name="box")
-    assert _KeypointEstimator(scenario, Priors(), 0.0)._tracker is None
-    scenario = LoadScenario(
-        scenario_name="box", scenario_text="tracker: {enabled: true}"
-    )
     assert _KeypointEstimator(scenario, Priors(), 0.0)._tracker is not None
+    scenario = LoadScenario(
+        scenario_name="box", scenario_text="tracker: {enabled: false}"
+    )
+    assert _KeypointEstimator(scenario, Priors(), 0.0)._tracker is None
     with pytest.raises(ValueError, match="tracker has 8 keypoints"):
         KeypointEstimator(
             priors=Priors(),
