@@ -24,6 +24,10 @@ class SafetyConfig:
     min_move: float = 0.002
     # Rule 4: grippers stay this far [m] outside the object's box.
     object_margin: float = 0.02
+    # The controller's view only: rule 4 also keeps each gripper's hand (its
+    # collision shape around the grasped point, SafetyContext.hand_spheres)
+    # out of the object's box, not just the grasped point.
+    hand_shape: bool = False
     # Action bound [m] per axis per step.
     max_step: float = 0.03
     # The controller's view only (states estimated from the camera): judge
@@ -169,6 +173,11 @@ class SafetyContext:
     # The states are estimates: rule 2 keeps this much [deg] inside
     # tau_d_deg (SafetyConfig.estimate_margin_deg; 0 for the true cloth).
     direction_margin_deg: float = 0.0
+    # Spheres (n, 4) [x, y, z, radius] covering a gripper's hand, around the
+    # grasped point with world-aligned axes: rule 4 also refuses a gripper
+    # where one of them enters the object's box (SafetyConfig.hand_shape;
+    # None: the grippers are points).
+    hand_spheres: np.ndarray | None = None
 
 
 # A keypoint this close [m] to the object's top face (within its footprint
@@ -262,9 +271,36 @@ def rule_violations(
             & (grippers[..., 2] < 2 * half[2] + margin)
         )
         out["object"] = inside.any(-1)
+        if ctx.hand_spheres is not None:
+            out["object"] = out["object"] | _hand_in_box(grippers, ctx)
     else:
         out["object"] = torch.zeros_like(out["bounds"])
     return out
+
+
+def _hand_in_box(grippers: torch.Tensor, ctx: SafetyContext) -> torch.Tensor:
+    """(...,) True where a sphere of either gripper's hand (ctx.hand_spheres,
+    world-aligned, turned into the states' frame) enters the object's box
+    (the states' frame: centred in x and y, from z = 0 up)."""
+    spheres = torch.as_tensor(ctx.hand_spheres, dtype=grippers.dtype)
+    offsets, radius = spheres[:, :3], spheres[:, 3]
+    if ctx.frame_pose is not None:
+        c, s = math.cos(float(ctx.frame_pose[2])), math.sin(float(ctx.frame_pose[2]))
+        # World-aligned offsets into the frame turned by yaw: R(yaw)^T v.
+        offsets = torch.stack(
+            [
+                c * offsets[:, 0] + s * offsets[:, 1],
+                -s * offsets[:, 0] + c * offsets[:, 1],
+                offsets[:, 2],
+            ],
+            -1,
+        )
+    size = torch.as_tensor(ctx.object_size, dtype=grippers.dtype)
+    centre = torch.stack([size.new_zeros(()), size.new_zeros(()), size[2] / 2])
+    points = grippers[..., None, :] + offsets  # (..., 2, n, 3)
+    q = (points - centre).abs() - size / 2
+    distance = q.clamp_min(0.0).norm(dim=-1) + q.max(-1).values.clamp_max(0.0)
+    return (distance < radius).any(-1).any(-1)
 
 
 def _outside_workspace(S, A, S_next, grippers, ctx: SafetyContext) -> torch.Tensor:

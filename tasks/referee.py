@@ -137,7 +137,27 @@ def TaskSafetyContext(scenario: Scenario, *, estimated: bool = False) -> SafetyC
         direction_margin_deg=(
             scenario.safety.estimate_margin_deg if estimated else 0.0
         ),
+        hand_spheres=(
+            HandSpheres(scenario)
+            if estimated and has_object and scenario.safety.hand_shape
+            else None
+        ),
     )
+
+
+# Spheres along the hand's capsules at most this fraction of their radius
+# apart cover them to within 3.2 % of the radius (Capsule.samples).
+HAND_SPHERE_SPACING = 0.5
+
+
+def HandSpheres(scenario: Scenario) -> np.ndarray:
+    """(n, 4) [x, y, z, radius]: spheres covering the scenario's grippers'
+    hands around the grasped point (world-aligned; GraspCapsules)."""
+    rows = []
+    for capsule in GraspCapsules(scenario):
+        centres = capsule.samples(HAND_SPHERE_SPACING)
+        rows.append(np.column_stack([centres, np.full(len(centres), capsule.radius)]))
+    return np.vstack(rows)
 
 
 def JudgeTransitions(

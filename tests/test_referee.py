@@ -248,3 +248,29 @@ def test_an_unknown_on_violation_rule_is_one_line_and_exit_2(capsys):
     )
     err = capsys.readouterr().err.strip().splitlines()
     assert code == 2 and len(err) == 1 and "pause" in err[0]
+
+
+def test_the_controllers_hand_shape_is_the_grippers_capsules():
+    """`safety.hand_shape` gives the controller's rule 4 spheres covering the
+    anchors' hand capsules (every capsule's axis inside a sphere of its
+    radius); the referee's view and the default stay point grippers."""
+    from fabric_imitation.scenarios.loader import LoadScenario
+    from fabric_imitation.systems.gripper_contact import GraspCapsules
+    from fabric_imitation.tasks.referee import TaskSafetyContext
+
+    scenario = LoadScenario(
+        scenario_name="box", scenario_text="safety: {hand_shape: true}"
+    )
+    spheres = TaskSafetyContext(scenario, estimated=True).hand_spheres
+    assert spheres is not None and spheres.shape[1] == 4
+    for capsule in GraspCapsules(scenario):
+        axis = capsule.samples(0.05)
+        gaps = np.linalg.norm(axis[:, None] - spheres[None, :, :3], axis=-1)
+        assert (gaps.min(1) <= 0.5 * capsule.radius).all()
+    assert TaskSafetyContext(scenario).hand_spheres is None
+    assert (
+        TaskSafetyContext(
+            LoadScenario(scenario_name="box"), estimated=True
+        ).hand_spheres
+        is None
+    )

@@ -117,6 +117,42 @@ def test_grippers_clear_of_the_object():
     assert "object" not in violated([0.0, -0.02, 0.0, 0, 0, 0], S=S2, ctx=ctx)
 
 
+def test_the_hand_shape_keeps_the_hand_out_of_the_object():
+    """With hand spheres, a gripper whose grasped point keeps the 2 cm margin
+    but whose hand reaches into the box breaks rule 4; above the box top it
+    does not. The spheres are world-aligned and turn into a turned object's
+    frame: an offset along world x lies along the object's -y when the
+    object is turned +90 degrees."""
+    size = np.array([0.14, 0.09, 0.06])
+    base = dict(
+        edge_length=L,
+        workspace_lower=CTX.workspace_lower,
+        workspace_upper=CTX.workspace_upper,
+        object_size=size,
+    )
+    # One sphere, 5 cm along world +x from the grasped point, radius 1 cm.
+    sphere = np.array([[0.05, 0.0, 0.0, 0.01]])
+    points = SafetyContext(**base)
+    hand = SafetyContext(**base, hand_spheres=sphere)
+    S = flat_state()
+    S[0] = [-0.12, 0.0, 0.03]  # 5 cm left of the box's -x face, mid-height
+    stay = [0.0, 0.0, 0.0, 0, 0, 0]
+    assert "object" not in violated(stay, S=S, ctx=points)
+    assert "object" in violated(stay, S=S, ctx=hand)  # the sphere is at x = -0.07
+    S[0, 2] = 0.08  # above the top: clear
+    assert "object" not in violated(stay, S=S, ctx=hand)
+    # Turned +90 degrees: world +x is the object's -y, so the sphere lies
+    # 5 cm towards -y of a point 5 cm in front of the -y face: not in it.
+    turned = SafetyContext(
+        **base, hand_spheres=sphere, frame_pose=np.array([0, 0, np.pi / 2])
+    )
+    S[0] = [-0.12, 0.0, 0.03]
+    assert "object" not in violated(stay, S=S, ctx=turned)
+    S[0] = [0.0, 0.095, 0.03]  # 5 cm beyond the +y face: the sphere reaches it
+    assert "object" in violated(stay, S=S, ctx=turned)
+    assert "object" not in violated(stay, S=S, ctx=points)
+
+
 def test_rules_are_batched():
     rng = np.random.default_rng(0)
     S = np.broadcast_to(flat_state(), (200, 8, 3))
