@@ -251,9 +251,10 @@ def test_an_unknown_on_violation_rule_is_one_line_and_exit_2(capsys):
 
 
 def test_the_controllers_hand_shape_is_the_grippers_capsules():
-    """`safety.hand_shape` gives the controller's rule 4 spheres covering the
-    anchors' hand capsules (every capsule's axis inside a sphere of its
-    radius); the referee's view and the default stay point grippers."""
+    """`safety.hand_shape` (the default) gives the controller's rule 4
+    spheres covering the anchors' hand capsules (every capsule's axis near a
+    sphere's centre); the referee's view, and the setting off, keep point
+    grippers."""
     from fabric_imitation.scenarios.loader import LoadScenario
     from fabric_imitation.systems.gripper_contact import GraspCapsules
     from fabric_imitation.tasks.referee import TaskSafetyContext
@@ -268,9 +269,7 @@ def test_the_controllers_hand_shape_is_the_grippers_capsules():
         gaps = np.linalg.norm(axis[:, None] - spheres[None, :, :3], axis=-1)
         assert (gaps.min(1) <= 0.5 * capsule.radius).all()
     assert TaskSafetyContext(scenario).hand_spheres is None
-    assert (
-        TaskSafetyContext(
-            LoadScenario(scenario_name="box"), estimated=True
-        ).hand_spheres
-        is None
+    points = LoadScenario(
+        scenario_name="box", scenario_text="safety: {hand_shape: false}"
     )
+    assert TaskSafetyContext(points, estimated=True).hand_spheres is None
