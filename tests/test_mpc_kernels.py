@@ -225,6 +225,11 @@ def test_folded_priors_match_the_normalised_networks():
     assert float((changed - S_next).abs().max()) > 1e-3
 
 
+def _assert_same_weights(a: torch.nn.Module, b: torch.nn.Module) -> None:
+    for x, y in zip(a.state_dict().values(), b.state_dict().values(), strict=True):
+        assert torch.equal(x, y)
+
+
 def test_registration_is_cached_per_demo_and_priors(tmp_path, monkeypatch):
     from fabric_imitation.learning.demo_learning import learn_from_demo
 
@@ -236,12 +241,7 @@ def test_registration_is_cached_per_demo_and_priors(tmp_path, monkeypatch):
     assert info["registration_cached"] is False
     again, info = learn_from_demo(demo, prior, cfg)
     assert info["registration_cached"] is True
-    for a, b in zip(
-        fresh.f_A.net.state_dict().values(),
-        again.f_A.net.state_dict().values(),
-        strict=True,
-    ):
-        assert torch.equal(a, b)
+    _assert_same_weights(fresh.f_A.net, again.f_A.net)
     # A cache hit leaves torch's global stream where training does.
     learn_from_demo(demo, prior, cfg, cache=False)
     after_training = torch.random.get_rng_state()
@@ -256,12 +256,7 @@ def test_registration_is_cached_per_demo_and_priors(tmp_path, monkeypatch):
             p.write_bytes(junk)
         retrained, info = learn_from_demo(demo, prior, cfg)
         assert info["registration_cached"] is False
-        for a, b in zip(
-            fresh.f_A.net.state_dict().values(),
-            retrained.f_A.net.state_dict().values(),
-            strict=True,
-        ):
-            assert torch.equal(a, b)
+        _assert_same_weights(fresh.f_A.net, retrained.f_A.net)
         _, info = learn_from_demo(demo, prior, cfg)
         assert info["registration_cached"] is True
     assert not list(tmp_path.glob("*.tmp"))

@@ -676,12 +676,26 @@ def BenchOcclusion(
     return summary
 
 
-def _plot_occlusion(table: dict, path: Path) -> None:
+def _pyplot():
+    """matplotlib's pyplot on the Agg backend (no screen)."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
+    return plt
+
+
+def _save_figure(fig, path: Path, dpi: int) -> None:
+    """Writes `fig` to `path` whole (through a file beside it) and closes it."""
+    tmp = path.with_name(path.name + ".tmp.png")
+    fig.savefig(tmp, dpi=dpi)
+    _pyplot().close(fig)
+    tmp.replace(path)
+
+
+def _plot_occlusion(table: dict, path: Path) -> None:
+    plt = _pyplot()
     fig, ax = plt.subplots(figsize=(5, 3.2))
     for kind, rows in table.items():
         x = [100 * r["occluded_fraction"] for r in rows]
@@ -701,8 +715,7 @@ def _plot_occlusion(table: dict, path: Path) -> None:
     ax.legend(fontsize=7)
     ax.grid(alpha=0.3)
     fig.tight_layout()
-    fig.savefig(path, dpi=100)
-    plt.close(fig)
+    _save_figure(fig, path, dpi=100)
 
 
 # `bench tracker`'s variants: the tracker as configured (f_D predicts), with
@@ -717,16 +730,24 @@ TRACKER_PREDICTIONS = {
 }
 
 
-class _WithForward:
-    """`priors` with f_D replaced by `forward` (None: f_D as it is)."""
+def _TrackVariant(priors, config, variant, pose, size, measured, spread, grasped):
+    """World keypoints (T, M, 3) tracked by `variant` (TRACKER_VARIANTS) from
+    f_R's world readings `measured` with their `spread`, the grippers at
+    `grasped` (T, 2, 3, world); the tracker runs in the object frame `pose`."""
+    from fabric_imitation.learning.state import object_to_world, world_to_object
+    from fabric_imitation.learning.tracker import KeypointTracker, track_states
 
-    def __init__(self, priors, forward):
-        self._priors, self._forward = priors, forward
+    def to_object(p_W: np.ndarray) -> np.ndarray:
+        return world_to_object(p_W.reshape(-1, 3), pose).reshape(p_W.shape)
 
-    def __getattr__(self, name: str):
-        if name == "forward" and self._forward is not None:
-            return self._forward
-        return getattr(self._priors, name)
+    tracker = KeypointTracker(
+        forward=TRACKER_PREDICTIONS[variant] or priors.forward,
+        num_keypoints=priors.num_keypoints,
+        config=dc.replace(config, object_projection=variant == "object_projection"),
+        object_size=size,
+    )
+    out = track_states(tracker, to_object(measured), spread, to_object(grasped))
+    return object_to_world(out.reshape(-1, 3), pose).reshape(out.shape)
 
 
 # f_R is "sure" of a keypoint whose heatmap spread is at most this [px].
@@ -757,7 +778,6 @@ def BenchTracker(
     from fabric_imitation.learning.tracker import (
         TrackerConfig,
         fit_measurement_model,
-        track_frames,
     )
 
     torch.set_num_threads(1)
@@ -773,24 +793,23 @@ def BenchTracker(
         scenario = LoadScenario(scenario_text=demo.scenario_yaml)
         size = scenario.object.size if scenario.object.kind != "none" else None
         grasped = truth[:, [idx["s1"], idx["s2"]]]
+        # f_R once per demo; each variant tracks its readings.
+        measured, spread = priors.keypoints_and_spread(demo.mask, demo.depth)
         runs = {
-            variant: track_frames(
-                _WithForward(priors, TRACKER_PREDICTIONS[variant]),
-                demo.mask,
-                demo.depth,
+            variant: _TrackVariant(
+                priors,
+                config,
+                variant,
+                demo.object_pose,
+                size,
+                measured,
+                spread,
                 grasped,
-                dc.replace(config, object_projection=variant == "object_projection"),
-                object_pose=demo.object_pose,
-                object_size=size,
             )
             for variant in TRACKER_VARIANTS
         }
-        measured, spread = runs["tracked"]["measured"], runs["tracked"]["spread"]
         e_fr = np.linalg.norm(measured - truth, axis=-1)
-        errors_of = {
-            v: np.linalg.norm(run["tracked"] - truth, axis=-1)
-            for v, run in runs.items()
-        }
+        errors_of = {v: np.linalg.norm(run - truth, axis=-1) for v, run in runs.items()}
         e_tr = errors_of["tracked"]
         # f_D's one-step error from the true state and the true move.
         moves = (grasped[1:] - grasped[:-1]).reshape(-1, 6)
@@ -802,9 +821,7 @@ def BenchTracker(
         errors.append(e_fr[:, others].ravel())
         off = e_fr[:, far] > TRACKER_OFF_M
         sure = spread[:, others] <= TRACKER_SURE_SPREAD_PX
-        follow = np.linalg.norm(runs["tracked"]["tracked"] - measured, axis=-1)[
-            :, others
-        ]
+        follow = np.linalg.norm(runs["tracked"] - measured, axis=-1)[:, others]
 
         def cm(x) -> float | None:
             return round(100 * float(np.mean(x)), 2) if np.size(x) else None
@@ -861,11 +878,7 @@ def BenchTracker(
 
 
 def _plot_tracker(curves: dict, path: Path) -> None:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
+    plt = _pyplot()
     fig, axes = plt.subplots(
         1, len(curves), figsize=(4 * len(curves), 3), squeeze=False
     )
@@ -877,7 +890,4 @@ def _plot_tracker(curves: dict, path: Path) -> None:
         ax.set_ylabel("far corners' error [cm]")
         ax.legend(fontsize=7)
     fig.tight_layout()
-    tmp = path.with_name(path.name + ".tmp.png")
-    fig.savefig(tmp, dpi=110)
-    plt.close(fig)
-    tmp.replace(path)
+    _save_figure(fig, path, dpi=110)
