@@ -43,8 +43,8 @@ from fabric_imitation.learning.metrics import (
     cloud_from_depth,
 )
 from fabric_imitation.learning.mpc import Mpc, MpcConfig
-from fabric_imitation.learning.priors import Priors, load_priors
-from fabric_imitation.learning.safety import RULES
+from fabric_imitation.learning.priors import DEFAULT_PRIORS, Priors, load_priors
+from fabric_imitation.learning.safety import RULES, SafetyConfig
 from fabric_imitation.learning.state import (
     NUM_KEYPOINTS,
     SIDES,
@@ -77,7 +77,6 @@ from pydrake.systems.framework import Diagram, DiagramBuilder
 from pydrake.systems.primitives import LogVectorOutput, Multiplexer, VectorLogSink
 
 PACKAGE_ROOT = Path(__file__).resolve().parent.parent
-DEFAULT_PRIORS = PACKAGE_ROOT / "learning" / "priors" / "default"
 DEFAULT_DEMOS = PACKAGE_ROOT / "scenarios" / "demos"
 EVENT_STAGGER = 1e-3  # [s]
 
@@ -131,6 +130,9 @@ class PreparedImitation:
     priors: Priors
     demo_states: np.ndarray  # (T, M, 3), demo object frame
     model: DemoModel  # demo states + f_A + termination classifier
+    # The controller's rules for this demo (the policy's, rule 2's threshold
+    # from the demo where the policy says so: SafetyConfig.for_demo).
+    safety: SafetyConfig
     registration: dict  # f_A training summary
     seconds: float  # wall time of the preparation
     # With baselines=True: the Zero/CFM/TCN networks, TCN also trained on
@@ -176,6 +178,8 @@ def PrepareImitation(
         raise InputError(f"priors {priors_dir} carry no prior states for f_A")
     states = DemoStates(priors, demo, scenario.reward, _Tracker(scenario, priors))
     model, info = learn_from_demo(states, priors.prior_states, scenario.reward)
+    safety = scenario.safety.for_demo(states)
+    info = {**info, "tau_d_deg": round(safety.tau_d_deg, 2)}
     nets = None
     if baselines:
         from fabric_imitation.learning.baselines import (
@@ -191,6 +195,7 @@ def PrepareImitation(
         priors=priors,
         demo_states=states,
         model=model,
+        safety=safety,
         registration=info,
         seconds=time.perf_counter() - t0,
         baselines=nets,
@@ -415,7 +420,7 @@ class _ControllerParts:
         args = dict(
             dynamics=self.prepared.priors,
             demo=self.prepared.model,
-            safety=self.scenario.safety,
+            safety=self.prepared.safety,
             safety_ctx=TaskSafetyContext(self.scenario, estimated=True),
             config=self.config,
         )
@@ -431,7 +436,7 @@ class _ControllerParts:
         from fabric_imitation.learning.limits import DriverLimits
 
         return DriverLimits.FromSafety(
-            self.scenario.safety, TaskSafetyContext(self.scenario, estimated=True)
+            self.prepared.safety, TaskSafetyContext(self.scenario, estimated=True)
         )
 
 

@@ -31,6 +31,8 @@ CHECKPOINT_VERSION = 2
 # the tensors alone in a torch file, loaded with `weights_only=True`, so a
 # checkpoint cannot carry code (a pickled object is refused, not run).
 CHECKPOINT_JSON = "priors.json"
+# The shipped priors (with their policy, learning/policy.py).
+DEFAULT_PRIORS = Path(__file__).resolve().parent / "priors" / "default"
 CHECKPOINT_FILE = "priors.pt"
 HEIGHT_SCALE = 4.0  # the height channel is metres * HEIGHT_SCALE
 # Network -> (the normalisers of its two inputs, of its output).

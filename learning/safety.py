@@ -20,6 +20,14 @@ class SafetyConfig:
     tau_f: float = 1.05
     # Rule 2: angle(a_L, s1 - s3) and angle(a_R, s2 - s4) below this [deg].
     tau_d_deg: float = 100.0
+    # Rule 2's threshold comes from the demo instead: the largest angle the
+    # demo's own moves make with their sides (`demo_direction_angle` on the
+    # demo's states, in PrepareImitation) plus tau_d_demo_margin_deg, so
+    # that the rule allows what the demo does (covering a box it lowers the
+    # edge in front at up to 106 degrees, hanging a towel at up to 149) and
+    # no more; tau_d_deg is then not used.
+    tau_d_from_demo: bool = True
+    tau_d_demo_margin_deg: float = 0.0
     # Moves shorter than this [m] have no direction: rule 2 passes them.
     min_move: float = 0.002
     # Rule 4: grippers stay this far [m] outside the object's box.
@@ -98,6 +106,11 @@ class SafetyConfig:
             raise ValueError(
                 f"safety.tau_d_deg must be in (0, 180], got {self.tau_d_deg}"
             )
+        if not 0 <= self.tau_d_demo_margin_deg < 90:
+            raise ValueError(
+                "safety.tau_d_demo_margin_deg must be in [0, 90), got "
+                f"{self.tau_d_demo_margin_deg}"
+            )
         if not 0 <= self.hidden_corner_margin_deg < self.tau_d_deg:
             raise ValueError(
                 "safety.hidden_corner_margin_deg must be in [0, tau_d_deg), got "
@@ -130,6 +143,36 @@ class SafetyConfig:
             )
         if self.max_step <= 0:
             raise ValueError(f"safety.max_step must be positive, got {self.max_step}")
+
+    def for_demo(self, demo_states: np.ndarray) -> "SafetyConfig":
+        """These rules for imitating the demo whose states (T, M, 3) are
+        given: with tau_d_from_demo, rule 2's threshold is the demo's largest
+        move-to-side angle plus the margin (at most 180 degrees)."""
+        if not self.tau_d_from_demo:
+            return self
+        angle = demo_direction_angle(demo_states, self.min_move)
+        return dc.replace(
+            self, tau_d_deg=min(180.0, angle + self.tau_d_demo_margin_deg)
+        )
+
+
+def demo_direction_angle(states: np.ndarray, min_move: float) -> float:
+    """The largest angle [deg] between a grasped corner's move from one
+    demo state to the next and its side (s1 - s3 for s1, s2 - s4 for s2) in
+    the state it leaves, over moves longer than `min_move` [m]: rule 2's
+    measure of the demo itself. 0 for a demo without such moves."""
+    S = np.asarray(states, dtype=np.float64)
+    idx = corner_indices(S.shape[-2])
+    largest = 0.0
+    for g, f in (("s1", "s3"), ("s2", "s4")):
+        move = S[1:, idx[g]] - S[:-1, idx[g]]
+        side = S[:-1, idx[g]] - S[:-1, idx[f]]
+        n_move, n_side = np.linalg.norm(move, axis=-1), np.linalg.norm(side, axis=-1)
+        keep = (n_move > min_move) & (n_side > 0)
+        if keep.any():
+            cos = (move * side).sum(-1)[keep] / (n_move * n_side)[keep]
+            largest = max(largest, float(np.degrees(np.arccos(cos.clip(-1, 1))).max()))
+    return largest
 
 
 @dc.dataclass

@@ -455,12 +455,16 @@ def test_each_shipped_baseline_acts_in_a_short_episode(controller):
         PrepareImitation,
     )
     from fabric_imitation.scenarios.loader import LoadScenario
+    from fabric_imitation.scenarios.policy import LoadPolicy
     from fabric_imitation.tools.episode import RunEpisode, ScoreEpisode
 
     scenario = LoadScenario(
         scenario_name="box",
-        scenario_text="{cloth: {vbd: {resolution: [8, 8]}}, "
-        "mpc: {step_cap_factor: 0.1, num_samples: 100, max_iterations: 1}}",
+        scenario_text="cloth: {vbd: {resolution: [8, 8]}}",
+        policy=LoadPolicy(
+            policy_text="mpc: {step_cap_factor: 0.1, num_samples: 100, "
+            "max_iterations: 1}"
+        ),
     )
     prepared = PrepareImitation(
         scenario, demo_dir=DefaultDemoDir("box", scenario), baselines=True

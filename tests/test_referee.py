@@ -7,6 +7,7 @@ from conftest import SMALL_CLOTH
 from fabric_imitation.learning.safety import RULES
 from fabric_imitation.learning.state import corner_indices
 from fabric_imitation.scenarios.loader import LoadScenario
+from fabric_imitation.scenarios.policy import LoadPolicy
 from fabric_imitation.systems.imitation import (
     RUNNING,
     TERMINATED_RULE_BREAK,
@@ -50,7 +51,10 @@ def test_the_referee_judges_the_papers_rules_with_the_tasks_thresholds():
     assert FirstBreak(bad) == (0, "direction")
     # The controller's own settings do not move the referee.
     tuned = LoadScenario(
-        scenario_name="box", scenario_text="safety: {tau_d_deg: 179.0}"
+        scenario_name="box",
+        policy=LoadPolicy(
+            policy_text="safety: {tau_d_deg: 179.0, tau_d_from_demo: false}"
+        ),
     )
     assert FirstBreak(JudgeTransitions(rules, tuned, S, towards_far_corner, S))
     assert rules.fingerprint() != REFEREES["hang"].fingerprint()
@@ -256,11 +260,12 @@ def test_the_controllers_hand_shape_is_the_grippers_capsules():
     sphere's centre); the referee's view, and the setting off, keep point
     grippers."""
     from fabric_imitation.scenarios.loader import LoadScenario
+    from fabric_imitation.scenarios.policy import LoadPolicy
     from fabric_imitation.systems.gripper_contact import GraspCapsules
     from fabric_imitation.tasks.referee import TaskSafetyContext
 
     scenario = LoadScenario(
-        scenario_name="box", scenario_text="safety: {hand_shape: true}"
+        scenario_name="box", policy=LoadPolicy(policy_text="safety: {hand_shape: true}")
     )
     spheres = TaskSafetyContext(scenario, estimated=True).hand_spheres
     assert spheres is not None and spheres.shape[1] == 4
@@ -270,6 +275,7 @@ def test_the_controllers_hand_shape_is_the_grippers_capsules():
         assert (gaps.min(1) <= 0.5 * capsule.radius).all()
     assert TaskSafetyContext(scenario).hand_spheres is None
     points = LoadScenario(
-        scenario_name="box", scenario_text="safety: {hand_shape: false}"
+        scenario_name="box",
+        policy=LoadPolicy(policy_text="safety: {hand_shape: false}"),
     )
     assert TaskSafetyContext(points, estimated=True).hand_spheres is None

@@ -25,9 +25,19 @@ def test_named_scenarios_match_the_design():
     assert big.object.size == [0.30, 0.15, 0.05]
     assert sorted(big.cloth.size) == [0.30, 0.40]
     assert LoadScenario(scenario_name="prior").object.kind == "none"
-    # The paper's MPC output (best sample) except on hang (elite mean).
-    assert box.mpc.execute == "best" and hang.mpc.execute == "mean"
-    assert LoadScenario(scenario_name="hang_panda").mpc.execute == "mean"
+
+
+def test_no_named_scenario_sets_the_method():
+    """Every scenario runs the one policy: the method's fields of each named
+    scenario are the shipped policy's."""
+    from fabric_imitation.learning.policy import POLICY_FIELDS
+    from fabric_imitation.scenarios.policy import LoadPolicy
+
+    policy = LoadPolicy()
+    for name in ScenarioNames():
+        scenario = LoadScenario(scenario_name=name)
+        for field in POLICY_FIELDS:
+            assert getattr(scenario, field) == getattr(policy, field), (name, field)
 
 
 def test_inline_overrides_merge_into_nested_fields():
@@ -45,12 +55,6 @@ def test_inline_overrides_merge_into_nested_fields():
     "kwargs, message",
     [
         (dict(scenario_name="boxx"), "unknown scenario 'boxx'"),
-        (
-            dict(scenario_name="box", scenario_text="mpc: {max_iterations: 0}"),
-            "mpc.max_iterations",
-        ),
-        (dict(scenario_name="box", scenario_text="mpc: {tau_conv: 0}"), "mpc.tau_conv"),
-        (dict(scenario_name="box", scenario_text="mpc: {elites: 501}"), "mpc.elites"),
         (dict(scenario_name="box", scenario_text="cloth: {frction: 1.0}"), "frction"),
         (
             dict(scenario_name="box", scenario_text="object: {pose: [0.7, 0.0, 0.0]}"),
@@ -69,23 +73,12 @@ def test_inline_overrides_merge_into_nested_fields():
             "cloth.poissons_ratio",
         ),
         (
-            dict(scenario_name="box", scenario_text="mpc: {execute: worst}"),
-            "mpc.execute must be best or mean",
+            dict(scenario_name="box", scenario_text="mpc: {max_iterations: 8}"),
+            "--scenario-text sets mpc: the method's settings belong in the policy",
         ),
         (
-            dict(scenario_name="hang", scenario_text="mpc: {prior: oracle}"),
-            "mpc.prior must be inverse or grasp",
-        ),
-        (
-            dict(scenario_name="hang", scenario_text="reward: {w_grasp: -1.0}"),
-            "reward.w_grasp must be non-negative",
-        ),
-        (
-            dict(
-                scenario_name="hang",
-                scenario_text="reward: {progress_grasp_weight: -5.0}",
-            ),
-            "reward.progress_grasp_weight must be non-negative",
+            dict(scenario_name="hang", scenario_text="{reward: {w_p: 1}, safety: {}}"),
+            "sets safety, reward",
         ),
     ],
 )

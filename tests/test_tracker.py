@@ -16,6 +16,7 @@ from fabric_imitation.learning.tracker import (
     track_frames,
 )
 from fabric_imitation.scenarios.loader import LoadScenario
+from fabric_imitation.scenarios.policy import LoadPolicy
 from fabric_imitation.systems.imitation import KeypointEstimator
 from fabric_imitation.tools.bench import TRACKER_OFF_M, TRACKER_SURE_SPREAD_PX
 from pydrake.math import RigidTransform, RotationMatrix
@@ -206,7 +207,7 @@ def test_shapes_and_settings_are_checked():
     with pytest.raises(ValueError, match=r"spreads must be \(8,\)"):
         dut.step(None, np.zeros((8, 3)), np.zeros(3))
     with pytest.raises(InputError, match="tracker.process_noise"):
-        LoadScenario(scenario_name="hang", scenario_text="tracker: {process_noise: 0}")
+        LoadPolicy(policy_text="tracker: {process_noise: 0}")
 
 
 class SpreadPriors:
@@ -313,7 +314,7 @@ def test_the_scenario_switches_the_tracker_on():
     scenario = LoadScenario(scenario_name="box")
     assert _KeypointEstimator(scenario, Priors(), 0.0)._tracker is not None
     scenario = LoadScenario(
-        scenario_name="box", scenario_text="tracker: {enabled: false}"
+        scenario_name="box", policy=LoadPolicy(policy_text="tracker: {enabled: false}")
     )
     assert _KeypointEstimator(scenario, Priors(), 0.0)._tracker is None
     with pytest.raises(ValueError, match="tracker has 8 keypoints"):

@@ -518,7 +518,7 @@ def _PreparedMpc(name, priors_dir, demo_dir, num_samples, horizon):
     mpc = Mpc(
         dynamics=prepared.priors,
         demo=prepared.model,
-        safety=scenario.safety,
+        safety=prepared.safety,
         safety_ctx=TaskSafetyContext(scenario, estimated=True),
         config=dc.replace(scenario.mpc, num_samples=num_samples, horizon=horizon),
     )

@@ -3,6 +3,7 @@ calls one keyword-only library function; every subcommand accepts --json
 (its summary as one JSON object on stdout; progress and logs on stderr)."""
 
 import argparse
+import dataclasses as dc
 import json
 import logging
 import sys
@@ -35,6 +36,7 @@ _SCENARIOS_FILE = (
 _OLD_SPELLINGS = {
     "--scenario_file": "--scenario-file",
     "--scenario_text": "--scenario-text",
+    "--policy_text": "--policy-text",
 }
 
 DESCRIPTIONS = {
@@ -135,8 +137,20 @@ def LoadScenarioFromArgs(args):
             "pose": [float(v) for v in args.object_pose],
         }
         text = yaml.safe_dump(overrides)
+    policy = None
+    if hasattr(args, "policy_text"):
+        from fabric_imitation.scenarios.policy import LoadPolicy
+
+        policy = LoadPolicy(
+            priors_dir=getattr(args, "priors", None),
+            filename=args.policy,
+            policy_text=args.policy_text,
+        )
     scenario = LoadScenario(
-        scenario_name=args.scenario, filename=args.scenario_file, scenario_text=text
+        scenario_name=args.scenario,
+        filename=args.scenario_file,
+        scenario_text=text,
+        policy=policy,
     )
     if args.object_pose is not None and scenario.object.kind == "none":
         raise InputError(f"scenario {args.scenario!r} has no object to place")
@@ -384,12 +398,25 @@ def _add_train(p):
 
 @command("train")(_add_train)
 def _train(args) -> dict:
+    from fabric_imitation.learning.policy import POLICY_FILE
     from fabric_imitation.learning.train import TrainConfig, train_priors
 
     config = TrainConfig(
         epochs=args.epochs, seed=args.seed, keypoint_epochs=args.keypoint_epochs
     )
-    return train_priors(data=args.data, out=args.out, config=config)
+    from fabric_imitation.scenarios.policy import (
+        LoadPolicy,
+        PriorsSha256,
+        WritePolicy,
+    )
+
+    # The new priors get the policy of the priors they replace (or the
+    # shipped one), for their own checksum.
+    own = Path(args.out) / POLICY_FILE
+    policy = LoadPolicy(filename=own if own.is_file() else None, check_priors=False)
+    result = train_priors(data=args.data, out=args.out, config=config)
+    policy = dc.replace(policy, priors_sha256=PriorsSha256(args.out))
+    return {**result, "policy": str(WritePolicy(policy, args.out))}
 
 
 def _add_train_baselines(p):
@@ -454,6 +481,25 @@ def _add_imitate(p):
         help="LCM bus for --hardware (default: the scenario's grippers.panda.lcm_url)",
     )
     _on_violation_flag(p)
+    _policy_flags(p)
+
+
+def _policy_flags(p) -> None:
+    p.add_argument(
+        "--policy",
+        type=Path,
+        default=None,
+        help="the method's settings: a policy YAML file (default: policy.yaml "
+        "beside the priors)",
+    )
+    p.add_argument(
+        "--policy-text",
+        "--policy_text",
+        dest="policy_text",
+        default="",
+        help="YAML mapping merged on top of the policy, e.g. "
+        "'mpc: {max_iterations: 8}'",
+    )
 
 
 def _on_violation_flag(p) -> None:
@@ -556,6 +602,7 @@ def _add_evaluate(p):
         help='YAML overrides for every scenario, e.g. "cloth: {engine: fem}"',
     )
     _on_violation_flag(p)
+    _policy_flags(p)
 
 
 @command("evaluate")(_add_evaluate)
@@ -572,6 +619,8 @@ def _evaluate(args) -> dict:
         demo=args.demo,
         priors=args.priors,
         scenario_text=args.scenario_text,
+        policy=args.policy,
+        policy_text=args.policy_text,
         protocol=args.protocol,
         executor=args.executor,
         sampling_seed=args.sampling_seed,
@@ -782,9 +831,33 @@ def _diagram(args) -> dict:
 ON_VIOLATION = ("stop", "count")
 
 
+def _CheckYamlMapping(text: str, flag: str) -> None:
+    """`text` (a flag's value) is empty or a YAML mapping."""
+    if not text or not text.strip():
+        return
+    import yaml
+
+    try:
+        data = yaml.safe_load(text)
+    except yaml.YAMLError as e:
+        mark = getattr(e, "problem_mark", None)
+        where = f" at line {mark.line + 1}, column {mark.column + 1}" if mark else ""
+        problem = getattr(e, "problem", None) or "not valid YAML"
+        raise InputError(f"{flag}: YAML syntax error{where}: {problem}") from None
+    if not isinstance(data, dict):
+        example = (
+            "'cloth: {engine: fem}'"
+            if flag == "--scenario-text"
+            else ("'mpc: {max_iterations: 8}'")
+        )
+        raise InputError(
+            f"{flag} must be a YAML mapping such as {example}, got {text!r}"
+        )
+
+
 def _CheckArgs(args) -> None:
     """What can be checked before any work starts (and before Drake or torch
-    are imported): the YAML of --scenario_text, counts that must be
+    are imported): the YAML of --scenario-text and --policy-text, counts that must be
     positive, --on-violation, and that output files can be created where
     asked."""
     rule = getattr(args, "on_violation", None)
@@ -792,26 +865,8 @@ def _CheckArgs(args) -> None:
         raise InputError(
             f"unknown --on-violation {rule!r}; use {' or '.join(ON_VIOLATION)}"
         )
-    text = getattr(args, "scenario_text", "")
-    if text and text.strip():
-        import yaml
-
-        try:
-            data = yaml.safe_load(text)
-        except yaml.YAMLError as e:
-            mark = getattr(e, "problem_mark", None)
-            where = (
-                f" at line {mark.line + 1}, column {mark.column + 1}" if mark else ""
-            )
-            problem = getattr(e, "problem", None) or "not valid YAML"
-            raise InputError(
-                f"--scenario-text: YAML syntax error{where}: {problem}"
-            ) from None
-        if not isinstance(data, dict):
-            raise InputError(
-                f"--scenario-text must be a YAML mapping such as "
-                f"'cloth: {{engine: fem}}', got {text!r}"
-            )
+    for flag in ("scenario_text", "policy_text"):
+        _CheckYamlMapping(getattr(args, flag, ""), "--" + flag.replace("_", "-"))
     for name in ("trials", "workers", "transitions", "steps"):
         value = getattr(args, name, None)
         if value is not None and value < 1:

@@ -34,7 +34,12 @@ from fabric_imitation.learning.metrics import (
     raster_iou,
 )
 from fabric_imitation.learning.mpc import MpcConfig
-from fabric_imitation.learning.safety import RULES, SafetyContext, rule_violations
+from fabric_imitation.learning.safety import (
+    RULES,
+    SafetyConfig,
+    SafetyContext,
+    rule_violations,
+)
 from fabric_imitation.learning.state import (
     PlanarPose,
     world_to_object,
@@ -252,7 +257,7 @@ def CountRuleBreaks(
     before: np.ndarray,
     action: np.ndarray,
     after: np.ndarray,
-    scenario: Scenario,
+    safety: SafetyConfig,
     safety_ctx: SafetyContext,
 ) -> dict:
     """How many transitions break any safety rule (judged on the state before
@@ -264,7 +269,7 @@ def CountRuleBreaks(
     bad = rule_violations(
         t(before, dtype=torch.float64),
         t(action, dtype=torch.float64),
-        scenario.safety,
+        safety,
         safety_ctx,
         S_next=t(after, dtype=torch.float64),
     )
@@ -325,7 +330,7 @@ def ScoreEpisode(
     safety_ctx = dc.replace(TaskSafetyContext(scenario), frame_pose=np.array(pose))
     tr = EpisodeTransitions(run.times, logs)
     estimated = CountRuleBreaks(
-        tr.estimated_before, tr.action, tr.estimated_after, scenario, safety_ctx
+        tr.estimated_before, tr.action, tr.estimated_after, prepared.safety, safety_ctx
     )
     estimated.pop("at")
     # Row k holds the Chamfer distance of the image at (k - 1) dt, where the

@@ -84,10 +84,12 @@ def TrialScenario(
     text: str,
     pose: list[float] | None,
     cloth_start: list[float] | None = None,
+    policy=None,
 ):
     """Scenario `name` with the YAML overrides `text` and, if given, the
     trial's object pose and the cloth's start ([dx, dy, dyaw_deg] from the
-    scenario's cloth pose) on top."""
+    scenario's cloth pose) on top, with `policy`'s settings (a Policy;
+    default the shipped priors')."""
     import yaml
     from fabric_imitation.scenarios.loader import LoadScenario
 
@@ -106,6 +108,7 @@ def TrialScenario(
     return LoadScenario(
         scenario_name=name,
         scenario_text=yaml.safe_dump(overrides) if overrides else "",
+        policy=policy,
     )
 
 
@@ -207,7 +210,9 @@ def _prepare(job: dict):
     from fabric_imitation.tools.episode import TorchThreads
 
     torch.set_num_threads(TorchThreads())
-    scenario = TrialScenario(job["scenario"], job["scenario_text"], None)
+    scenario = TrialScenario(
+        job["scenario"], job["scenario_text"], None, policy=_JobPolicy(job)
+    )
     return PrepareImitation(
         scenario,
         demo_dir=job.get("demo") or DefaultDemoDir(job["scenario"], scenario),
@@ -216,12 +221,28 @@ def _prepare(job: dict):
     )
 
 
+def _JobPolicy(job: dict):
+    """The policy a job runs with: its file (default: the priors') and
+    inline overrides."""
+    from fabric_imitation.scenarios.policy import LoadPolicy
+
+    return LoadPolicy(
+        priors_dir=job.get("priors"),
+        filename=job.get("policy"),
+        policy_text=job.get("policy_text", ""),
+    )
+
+
 def _run_trial(job: dict) -> dict:
     import torch
 
     torch.set_num_threads(1)
     scenario = TrialScenario(
-        job["scenario"], job["scenario_text"], job["pose"], job.get("cloth_start")
+        job["scenario"],
+        job["scenario_text"],
+        job["pose"],
+        job.get("cloth_start"),
+        policy=_JobPolicy(job),
     )
     t0 = time.perf_counter()
     if job["method"] == "scripted":
@@ -411,6 +432,7 @@ def TrialFingerprints(
     scenario_text: str,
     demo: Path | None,
     priors: Path | None,
+    policy=None,
 ) -> dict:
     """What a trial's figures depend on besides its poses and seeds: the
     code, the priors, the baselines, the referee's rules, the demo and the
@@ -421,7 +443,7 @@ def TrialFingerprints(
     from fabric_imitation.tasks.referee import TaskReferee
     from pydrake.common.yaml import yaml_dump_typed
 
-    scenario = TrialScenario(scenario_name, scenario_text, None)
+    scenario = TrialScenario(scenario_name, scenario_text, None, policy=policy)
     priors_dir = Path(priors) if priors else DEFAULT_PRIORS
     demo_dir = Path(demo) if demo else DefaultDemoDir(scenario_name, scenario)
     text = yaml_dump_typed(scenario, schema=Scenario)
@@ -454,6 +476,8 @@ def Evaluate(
     demo: Path | None = None,
     priors: Path | None = None,
     scenario_text: str = "",
+    policy: Path | None = None,
+    policy_text: str = "",
     progress: bool = True,
     protocol: str = "transformation",
     executor: str = "local",
@@ -464,7 +488,8 @@ def Evaluate(
     """Runs `trials` trials per scenario and method (resumable via `out`,
     a JSON-lines file of finished trials); writes `out`.summary.json and a
     bar plot `out`.png. `scenario_text` (YAML) overrides every scenario, e.g.
-    "cloth: {engine: fem}".
+    "cloth: {engine: fem}"; the method's settings are the policy file
+    `policy` (default: the priors') with `policy_text` (YAML) on top.
 
     `seed` draws the object poses; `sampling_seed` the controllers' random
     sampling (trial i samples with seed i + SAMPLING_SEED_STRIDE x
@@ -484,6 +509,9 @@ def Evaluate(
         worker_trials=worker_trials,
     )
     out = Path(out)
+    from fabric_imitation.scenarios.policy import LoadPolicy
+
+    chosen = LoadPolicy(priors_dir=priors, filename=policy, policy_text=policy_text)
     run = dict(
         protocol=protocol,
         sampling_seed=sampling_seed,
@@ -503,7 +531,7 @@ def Evaluate(
     }
     fingerprints = {
         name: TrialFingerprints(
-            name, scenario_text=scenario_text, demo=demo, priors=priors
+            name, scenario_text=scenario_text, demo=demo, priors=priors, policy=chosen
         )
         for name in scenario_names
     }
@@ -512,6 +540,8 @@ def Evaluate(
         "demo": str(demo) if demo else None,
         "priors": str(priors) if priors else None,
         "scenario_text": scenario_text,
+        "policy": str(policy) if policy else None,
+        "policy_text": policy_text,
         "protocol": protocol,
         "sampling_seed": sampling_seed,
         "baselines": any(m in BASELINE_METHODS for m in methods),
@@ -650,8 +680,8 @@ def _CheckResumable(rows, fingerprints: dict, scenario_text: str, out: Path) -> 
         ):
             raise InputError(
                 f"{out} holds trials of {row['scenario']} run with other code, "
-                "priors, baselines, demo or scenario settings (their fingerprint "
-                "or --scenario-text differs); give another --out"
+                "priors, baselines, demo, scenario or policy settings (their "
+                "fingerprint or --scenario-text differs); give another --out"
             )
 
 
