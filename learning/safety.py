@@ -21,11 +21,10 @@ class SafetyConfig:
     # Rule 2: angle(a_L, s1 - s3) and angle(a_R, s2 - s4) below this [deg].
     tau_d_deg: float = 100.0
     # Rule 2's threshold comes from the demo instead: the largest angle the
-    # demo's own moves make with their sides (`demo_direction_angle` on the
-    # demo's states, in PrepareImitation) plus tau_d_demo_margin_deg, so
-    # that the rule allows what the demo does (covering a box it lowers the
-    # edge in front at up to 106 degrees, hanging a towel at up to 149) and
-    # no more; tau_d_deg is then not used.
+    # demo's own moves hold with their sides (`demo_direction_angle` on the
+    # demo's estimated states, in PrepareImitation) plus
+    # tau_d_demo_margin_deg, so that the rule allows what the demo does and
+    # little more; tau_d_deg is then not used.
     tau_d_from_demo: bool = True
     tau_d_demo_margin_deg: float = 0.0
     # Moves shorter than this [m] have no direction: rule 2 passes them.
@@ -157,10 +156,13 @@ class SafetyConfig:
 
 
 def demo_direction_angle(states: np.ndarray, min_move: float) -> float:
-    """The largest angle [deg] between a grasped corner's move from one
-    demo state to the next and its side (s1 - s3 for s1, s2 - s4 for s2) in
-    the state it leaves, over moves longer than `min_move` [m]: rule 2's
-    measure of the demo itself. 0 for a demo without such moves."""
+    """The largest angle [deg] the demo holds between a grasped corner's
+    move and its side (s1 - s3 for s1, s2 - s4 for s2, in the state the move
+    leaves), over moves longer than `min_move` [m]: rule 2's measure of the
+    demo itself. Each move's angle is the median of it and its neighbours'
+    (three consecutive moves of the same corner), since a frame in which
+    f_R misreads a corner spikes one move's angle while the demo's motion
+    changes direction smoothly. 0 for a demo without such moves."""
     S = np.asarray(states, dtype=np.float64)
     idx = corner_indices(S.shape[-2])
     largest = 0.0
@@ -168,10 +170,13 @@ def demo_direction_angle(states: np.ndarray, min_move: float) -> float:
         move = S[1:, idx[g]] - S[:-1, idx[g]]
         side = S[:-1, idx[g]] - S[:-1, idx[f]]
         n_move, n_side = np.linalg.norm(move, axis=-1), np.linalg.norm(side, axis=-1)
-        keep = (n_move > min_move) & (n_side > 0)
-        if keep.any():
-            cos = (move * side).sum(-1)[keep] / (n_move * n_side)[keep]
-            largest = max(largest, float(np.degrees(np.arccos(cos.clip(-1, 1))).max()))
+        cos = (move * side).sum(-1) / np.maximum(n_move * n_side, 1e-12)
+        angle = np.degrees(np.arccos(cos.clip(-1, 1)))
+        angle[(n_move <= min_move) | (n_side == 0)] = np.nan
+        for t in range(len(angle)):
+            window = angle[max(t - 1, 0) : t + 2]
+            if not np.isnan(angle[t]) and (~np.isnan(window)).sum() >= 2:
+                largest = max(largest, float(np.nanmedian(window)))
     return largest
 
 

@@ -119,12 +119,13 @@ def test_an_object_pose_merges_into_a_one_line_scenario_text():
         Namespace(
             scenario="box",
             scenario_file=None,
-            scenario_text=(
-                "{cloth: {pose: [0.01, 0.22, 5.0]}, mpc: {max_iterations: 7}}"
-            ),
+            scenario_text="{cloth: {pose: [0.01, 0.22, 5.0]}, object: {friction: 0.7}}",
             object_pose=[0.05, -0.1, 30.0],
+            policy=None,
+            policy_text="mpc: {max_iterations: 7}",
         )
     )
     assert scenario.object.pose == [0.05, -0.1, 30.0]
+    assert scenario.object.friction == 0.7
     assert scenario.cloth.pose == [0.01, 0.22, 5.0]
     assert scenario.mpc.max_iterations == 7
