@@ -60,8 +60,14 @@ class MpcConfig:
     use_cost: bool = True
     # Episode step cap as a multiple of the demo length (plus 5).
     step_cap_factor: float = 2.0
-    # Perturbations tried to replace an invalid action of the prior.
+    # An action of the prior that breaks a rule is replaced by the nearest
+    # valid one among this many perturbations of it (Mpc.action_prior);
+    # repair_prior false: the prior is used as f_I gives it (the paper's).
+    repair_prior: bool = True
     prior_candidates: int = 64
+    # f_D's predictions are kept above the table and below the grippers
+    # (Mpc._predict); false: f_D's output as it is (the paper's).
+    project_predictions: bool = True
     # Progress tracking: J may move back by lag and ahead by lead per step
     # (lead < 0: search the whole demo every step, as in the paper).
     progress_lag: int = 1
@@ -70,8 +76,7 @@ class MpcConfig:
     # sampled sequence with the highest reward) or "mean" (the final elite
     # mean, when its predicted rollout is feasible; else the best). The best
     # of 500 noisy samples jitters by up to 3 cm per step; the elite mean is
-    # smoother and succeeds more often on hang, so scenarios.yaml sets it
-    # for hang; on box it leaves more episodes running to the step cap.
+    # smoother, but on box it leaves more episodes running to the step cap.
     execute: str = "best"
     # Action prior: "inverse" (the paper's: f_I towards each subgoal) or
     # "grasp" (each gripper straight towards the subgoal's grasped corner:
@@ -172,6 +177,8 @@ class Mpc:
         7 cm per step above the grippers does the same at the workspace's
         0.5 m ceiling (both on hang with the object turned)."""
         nxt = self.dynamics.forward(s, a)
+        if not self.config.project_predictions:
+            return nxt
         i1, i2 = self.demo.grasped
         grippers_z = torch.maximum(s[..., i1, 2] + a[..., 2], s[..., i2, 2] + a[..., 5])
         ceiling = grippers_z.clamp_min(self._object_top) + CLOTH_ABOVE_GRIPPERS
@@ -205,7 +212,8 @@ class Mpc:
                 a = self.dynamics.inverse(s, goal)
             a = self._clip(a)
             nxt = self._predict(s, a)
-            if cfg.use_cost and not bool(
+            repair = cfg.use_cost and cfg.repair_prior
+            if repair and not bool(
                 valid_actions(s, a, self.safety, self.ctx, S_next=nxt)
             ):
                 a = self._nearest_valid(s, a, gen)

@@ -397,6 +397,23 @@ def test_mpc_projects_predictions_to_heights_the_cloth_can_reach():
     assert float(nxt[..., 2].max()) == pytest.approx(0.03 + 0.05, abs=1e-6)
     # Unprojected, every sequence would leave the 0.5 m workspace.
     assert mpc.solve(S).feasible
+    mpc.config = dc.replace(mpc.config, project_predictions=False)
+    assert float(mpc._predict(S[None], a)[..., 2].max()) > 1.0
+    assert not mpc.solve(S).feasible
+
+
+def test_an_invalid_prior_action_is_repaired_unless_switched_off():
+    states = pulled_demo(n=8)
+    mpc = linear_goal_mpc(WrongInverse(), demo_model(states, tau_i=0.9))
+    # The (wrong) f_I pushes the grasped corners 3 cm back into the cloth:
+    # rule 2 forbids it, and the repair puts a valid action in its place.
+    S = torch.as_tensor(states[0])
+    raw = mpc._clip(WrongInverse().inverse(S[None], torch.as_tensor(states[1])[None]))
+    assert not bool(valid_actions(S, raw[0], mpc.safety, CTX))
+    repaired = mpc.action_prior(S, torch.Generator().manual_seed(0))[0]
+    assert bool(valid_actions(S, repaired, mpc.safety, CTX))
+    mpc.config = dc.replace(mpc.config, repair_prior=False)
+    assert torch.equal(mpc.action_prior(S)[0], raw[0])
 
 
 def test_mpc_reports_no_feasible_action():

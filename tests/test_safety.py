@@ -5,9 +5,11 @@ import pytest
 from fabric_imitation.learning.safety import (
     SafetyConfig,
     SafetyContext,
+    demo_direction_angle,
     rule_violations,
     valid_actions_np,
 )
+from fabric_imitation.learning.state import corner_indices
 
 L = 0.30
 
@@ -471,3 +473,35 @@ def test_the_controller_keeps_a_margin_inside_rule_2_where_set():
         SafetyConfig(estimate_margin_deg=-1.0)
     with pytest.raises(ValueError, match="estimate_margin_deg"):
         SafetyConfig(estimate_margin_deg=60.0, hidden_corner_margin_deg=50.0)
+
+
+def _demo_moving_at(angles_deg: list[float], m: int = 8) -> np.ndarray:
+    """Demo states (T, m, 3) whose grasped corners move 1 cm a step at the
+    given angles [deg] from their sides (the sides point along +y: far
+    corners at y = -0.3, grasped ones at y = 0), in the x-y plane."""
+    idx = corner_indices(m)
+    S = np.zeros((len(angles_deg) + 1, m, 3))
+    S[0, idx["s1"]], S[0, idx["s2"]] = [-0.1, 0.0, 0.0], [0.1, 0.0, 0.0]
+    for t, angle in enumerate(np.radians(angles_deg)):
+        move = 0.01 * np.array([np.sin(angle), np.cos(angle), 0.0])
+        S[t + 1] = S[t]
+        S[t + 1, idx["s1"]] += move
+        S[t + 1, idx["s2"]] += move
+    # Each state's far corners 0.3 m behind its grasped ones (sides along +y).
+    S[:, idx["s3"]] = S[:, idx["s1"]] - [0.0, 0.3, 0.0]
+    S[:, idx["s4"]] = S[:, idx["s2"]] - [0.0, 0.3, 0.0]
+    return S
+
+
+def test_rule_2_threshold_from_the_demo_ignores_one_misread_frame():
+    # Held for two moves, 120 degrees counts; a single 170-degree spike does not.
+    demo = _demo_moving_at([10.0, 120.0, 120.0, 30.0, 170.0, 40.0, 20.0])
+    assert demo_direction_angle(demo, 0.002) == pytest.approx(120.0, abs=1e-6)
+    config = SafetyConfig(tau_d_demo_margin_deg=5.0)
+    assert config.for_demo(demo).tau_d_deg == pytest.approx(125.0, abs=1e-6)
+    fixed = SafetyConfig(tau_d_deg=100.0, tau_d_from_demo=False)
+    assert fixed.for_demo(demo).tau_d_deg == 100.0
+    # Moves too short to have a direction say nothing.
+    assert demo_direction_angle(demo, 0.02) == 0.0
+    with pytest.raises(ValueError, match="tau_d_demo_margin_deg"):
+        SafetyConfig(tau_d_demo_margin_deg=-1.0)
