@@ -398,8 +398,6 @@ def _KeypointEstimator(
         height=cam.height,
         period=scenario.motion.step_seconds,
         offset=start,
-        misread_grasp_error=scenario.safety.misread_grasp_error,
-        max_side_length=scenario.safety.misread_side_stretch * scenario.cloth.size[1],
         tracker=_Tracker(scenario, priors),
     )
 
@@ -535,11 +533,6 @@ def _WireLoop(builder, station, estimator, reward, controller, targets):
     for system in (reward, controller):
         builder.Connect(
             estimator.GetOutputPort("keypoints"), system.GetInputPort("keypoints")
-        )
-    if controller.HasInputPort("remembered_far_corners"):
-        builder.Connect(
-            estimator.GetOutputPort("remembered_far_corners"),
-            controller.GetInputPort("remembered_far_corners"),
         )
     return pose, grippers
 

@@ -318,7 +318,6 @@ class Mpc:
         seed: int = 0,
         previous_progress: int | None = None,
         frame_pose=None,
-        far_corner_alternatives=None,
         cloth_on_object: bool = False,
     ) -> MpcResult:
         """One control step from state S (M, 3) (see `_solve_once`). Where
@@ -330,7 +329,6 @@ class Mpc:
             seed=seed,
             previous_progress=previous_progress,
             frame_pose=frame_pose,
-            far_corner_alternatives=far_corner_alternatives,
             cloth_on_object=cloth_on_object,
         )
         result = self._solve_once(S, **kwargs)
@@ -356,7 +354,6 @@ class Mpc:
         seed: int = 0,
         previous_progress: int | None = None,
         frame_pose=None,
-        far_corner_alternatives=None,
         cloth_on_object: bool = False,
     ) -> MpcResult:
         """One control step from state S (M, 3).
@@ -367,21 +364,17 @@ class Mpc:
         height, and free jumps of J made the controller hunt back and forth.
         `frame_pose` ([x, y, yaw]) is the object's pose now, where the
         workspace rule's world box is checked (default: the one given at
-        construction). `far_corner_alternatives` ((2, 3) or None): other
-        places of s3, s4 that rule 2 is also judged against this step
-        (SafetyContext). `cloth_on_object`: the cloth was seen on the object
+        construction). `cloth_on_object`: the cloth was seen on the object
         in an earlier step (SafetyContext.cloth_on_object).
         """
         cfg = self.config
         t0 = time.perf_counter()
-        # The rules' world-frame parts (workspace box) follow the object; the
-        # far-corner alternatives hold for this step only.
+        # The rules' world-frame parts (workspace box) follow the object.
         self.ctx = dc.replace(
             self.ctx,
             frame_pose=self.ctx.frame_pose
             if frame_pose is None
             else np.asarray(frame_pose, float),
-            far_corner_alternatives=far_corner_alternatives,
             cloth_on_object=cloth_on_object,
         )
         S = torch.as_tensor(S, dtype=torch.float32)

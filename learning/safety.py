@@ -79,21 +79,6 @@ class SafetyConfig:
     # Where no sampled sequence keeps the margin, the MPC solves the step
     # again with the rule as written (Mpc.solve) rather than end the episode.
     estimate_margin_deg: float = 5.0
-    # The controller's view only: the robot measures where it holds s1 and
-    # s2, so f_R's own estimate of them says how well it read a frame. Where
-    # the two lie more than this [m] (summed) from the grippers, f_R has
-    # misread the frame, and rule 2 is also judged against the far corners
-    # of the last frame it read within this (KeypointEstimator;
-    # SafetyContext.far_corner_alternatives). inf: off, the default: with
-    # the keypoint tracker on, switching both misread tests on changes
-    # nothing measurable (at development seeds 0-2, 90 paired trials of box,
-    # hang and box_big: +1.1 pp for on, Newcombe 95 % [-6.7, +9.0]).
-    misread_grasp_error: float = math.inf
-    # The controller's view only, as above: a frame is also misread where a
-    # far corner lies further from the gripper holding its side than this
-    # times the side's rest length (f_R has put s3 by s4 or the other way
-    # round; inf: off, the default, as above).
-    misread_side_stretch: float = math.inf
 
     def __post_init__(self):
         if not 0 < self.tau_c < self.tau_f:
@@ -129,16 +114,6 @@ class SafetyConfig:
             raise ValueError(
                 "safety.hanging_swing_deg must be in [0, 90), got "
                 f"{self.hanging_swing_deg}"
-            )
-        if not self.misread_grasp_error > 0:
-            raise ValueError(
-                "safety.misread_grasp_error must be positive (inf: off), got "
-                f"{self.misread_grasp_error}"
-            )
-        if not self.misread_side_stretch > 0:
-            raise ValueError(
-                "safety.misread_side_stretch must be positive (inf: off), got "
-                f"{self.misread_side_stretch}"
             )
         if self.max_step <= 0:
             raise ValueError(f"safety.max_step must be positive, got {self.max_step}")
@@ -214,10 +189,6 @@ class SafetyContext:
     cloth_on_object: bool = False
     # Rest length [m] of the sides s1-s3 and s2-s4 (None: edge_length).
     side_length: float | None = None
-    # Other places (2, 3) where s3 and s4 may be: rule 2 is also judged
-    # against them (the estimator's last trusted far corners, when f_R has
-    # misread the frame), or None.
-    far_corner_alternatives: np.ndarray | None = None
     # The states are estimates: rule 2 keeps this much [deg] inside
     # tau_d_deg (SafetyConfig.estimate_margin_deg; 0 for the true cloth).
     direction_margin_deg: float = 0.0
@@ -293,13 +264,6 @@ def rule_violations(
                 out["direction"] = out["direction"] | (
                     free & bad_direction(a, up, cos_swing)
                 )
-    if ctx.far_corner_alternatives is not None:
-        alt = torch.as_tensor(ctx.far_corner_alternatives, dtype=S.dtype)
-        out["direction"] = (
-            out["direction"]
-            | bad_direction(a_l, s1 - alt[0], cos_hidden)
-            | bad_direction(a_r, s2 - alt[1], cos_hidden)
-        )
     if ctx.far_corners_may_drape and ctx.object_size is not None:
         on_top = _cloth_on_top(S, ctx) | ctx.cloth_on_object
         for a, g in ((a_l, s1), (a_r, s2)) if on_top.any() else ():

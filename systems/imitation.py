@@ -85,29 +85,17 @@ class KeypointEstimator(LeafSystem):
     robot's own measurement) instead of from the image, where a corner can
     hide under the cloth.
 
-    The same measurement says how well f_R read the frame: where its own
-    grasped corners lie more than ``misread_grasp_error`` metres (summed
-    over both) from the grippers, or a far corner s3, s4 lies more than
-    ``max_side_length`` from the gripper holding its side (further than
-    the side can reach), the frame counts as misread, and
-    ``remembered_far_corners`` gives s3 and s4 of the last frame read
-    within that (NaN while the frame is read right, or before any was);
-    the keypoints themselves stay the estimate (f_R's, or the tracker's).
-
     With a ``tracker`` (learning/tracker.py), the ``keypoints`` output is
     f_R's reading fused with f_D's prediction from the previous estimate and
     the grippers' measured move since the last update, so a corner hidden
     under the cloth or behind the object keeps a predicted place (estimate
     and variance are discrete state). Without the ``grippers`` input there
-    is no move to predict with, and the output is f_R's reading. The misread
-    test still judges f_R's own reading; the far corners it remembers are
-    then the tracked ones of the last frame read right.
+    is no move to predict with, and the output is f_R's reading.
 
     Input ports: ``mask`` (ImageGrey8U), ``depth`` (ImageDepth32F),
     ``object_pose`` (RigidTransform X_WO), ``grippers`` (6, optional: left
     and right gripper positions in world).
-    Output ports: ``keypoints`` (3M, object frame; from state),
-    ``remembered_far_corners`` (6, object frame: s3 then s4).
+    Output ports: ``keypoints`` (3M, object frame; from state).
 
     Args:
         priors: anything with ``keypoints(mask, depth) -> (M, 3)`` world
@@ -124,8 +112,6 @@ class KeypointEstimator(LeafSystem):
         height: int,
         period: float,
         offset: float = 0.0,
-        misread_grasp_error: float = np.inf,
-        max_side_length: float = np.inf,
         tracker: KeypointTracker | None = None,
     ):
         super().__init__()
@@ -140,14 +126,7 @@ class KeypointEstimator(LeafSystem):
         self._grippers = self.DeclareVectorInputPort("grippers", 6)
         idx = corner_indices(num_keypoints)
         self._corners = [idx[k] for k in ("s1", "s2")]
-        self._far = [idx[k] for k in ("s3", "s4")]
-        self._misread_grasp_error = misread_grasp_error
-        self._max_side_length = max_side_length
         self._state = self.DeclareDiscreteState(3 * num_keypoints)
-        # s3, s4 of the last frame read right (NaN before one), and the
-        # output: those while this frame is misread, else NaN.
-        self._last_good_far = self.DeclareDiscreteState(BasicVector(np.full(6, np.nan)))
-        self._remembered = self.DeclareDiscreteState(BasicVector(np.full(6, np.nan)))
         # The tracker's estimate is the `keypoints` state; its variance per
         # keypoint, the grippers (world) and the object pose [x, y, yaw_rad]
         # at the last update (NaN before the first).
@@ -159,7 +138,6 @@ class KeypointEstimator(LeafSystem):
         self.DeclarePeriodicDiscreteUpdateEvent(period, offset, self._update)
         self.DeclareForcedDiscreteUpdateEvent(self._update)
         self.DeclareStateOutputPort("keypoints", self._state)
-        self.DeclareStateOutputPort("remembered_far_corners", self._remembered)
 
     def _update(self, context, discrete_state) -> EventStatus:
         mask = self._mask.Eval(context).data[:, :, 0]
@@ -169,30 +147,15 @@ class KeypointEstimator(LeafSystem):
         else:
             p_W, spread = self._priors.keypoints_and_spread(mask, depth)
             p_W = np.array(p_W)
-        trusted = True
         grippers = None
         if self._grippers.HasValue(context):
             grippers = self._grippers.Eval(context).reshape(2, 3)
-            error = float(np.linalg.norm(p_W[self._corners] - grippers, axis=1).sum())
-            trusted = error <= self._misread_grasp_error
             p_W[self._corners] = grippers
-            # A far corner further from its gripper than the side is long
-            # is misread as well (f_R put it at the other far corner).
-            sides = np.linalg.norm(p_W[self._far] - grippers, axis=1)
-            trusted = trusted and bool((sides <= self._max_side_length).all())
         pose = PlanarPose.FromRigidTransform(self._pose.Eval(context))
         p_O = world_to_object(p_W, pose)
         if self._tracker is not None:
             p_O = self._track(context, discrete_state, p_O, spread, grippers, pose)
         discrete_state.get_mutable_vector(self._state).SetFromVector(p_O.ravel())
-        remembered = np.full(6, np.nan)
-        if trusted:
-            discrete_state.get_mutable_vector(self._last_good_far).SetFromVector(
-                p_O[self._far].ravel()
-            )
-        else:
-            remembered = context.get_discrete_state(self._last_good_far).value()
-        discrete_state.get_mutable_vector(self._remembered).SetFromVector(remembered)
         return EventStatus.Succeeded()
 
     def _track(
@@ -447,17 +410,15 @@ class StepController(LeafSystem):
 
 class MpcController(StepController):
     """Sampling MPC following the demo (learning/mpc.py), once per control
-    step (see StepController for ports; also ``remembered_far_corners``,
-    optional: KeypointEstimator's, where rule 2 is judged as well). Ends the
-    episode when the termination classifier fires, when no feasible action
-    exists, or at the step cap. The rules use the object pose of the
+    step (see StepController for ports). Ends the episode when the
+    termination classifier fires, when no feasible action exists, or at the
+    step cap. The rules use the object pose of the
     step."""
 
     def __init__(self, *, mpc, seed: int = 0, **kwargs):
         super().__init__(**kwargs)
         self._mpc = mpc
         self._seed = seed
-        self._remembered = self.DeclareVectorInputPort("remembered_far_corners", 6)
 
     def Finished(self, S, steps) -> int | None:
         return TERMINATED_CLASSIFIER if self._mpc.finished(S, steps) else None
@@ -469,18 +430,12 @@ class MpcController(StepController):
         on_object = bool(self._get(context, "memory")[0]) or cloth_on_object(
             S, self._mpc.ctx
         )
-        far = None
-        if self._remembered.HasValue(context):
-            v = self._remembered.Eval(context)
-            if np.all(np.isfinite(v)):
-                far = v.reshape(2, 3)
         result = self._mpc.solve(
             S,
             step=steps,
             seed=self._seed,
             previous_progress=progress,
             frame_pose=pose,
-            far_corner_alternatives=far,
             cloth_on_object=on_object,
         )
         if not result.feasible:

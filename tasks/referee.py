@@ -78,8 +78,6 @@ class RefereeRules:
             hidden_corners_drape=False,
             hidden_corner_margin_deg=0.0,
             estimate_margin_deg=0.0,
-            misread_grasp_error=float("inf"),
-            misread_side_stretch=float("inf"),
         )
 
     def fingerprint(self) -> str:

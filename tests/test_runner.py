@@ -176,7 +176,6 @@ class FixedMpc:
     def __init__(self, action_O, done=False, ctx=None):
         self.action = torch.as_tensor(action_O, dtype=torch.float32)
         self.frames = []
-        self.far = []
         self.on_object = []
         self.done = done
         self.config = types.SimpleNamespace(num_samples=1)
@@ -197,11 +196,9 @@ class FixedMpc:
         seed,
         previous_progress,
         frame_pose=None,
-        far_corner_alternatives=None,
         cloth_on_object=False,
     ):
         self.frames.append(np.array(frame_pose))
-        self.far.append(far_corner_alternatives)
         self.on_object.append(cloth_on_object)
         return MpcResult(self.action, True, 3, 1.0, 7, 0.01)
 
@@ -237,23 +234,6 @@ def test_mpc_controller_applies_object_frame_actions_in_the_turned_world():
         "release": 0.0,
     }
     assert dut.GetOutputPort("solve_ms").Eval(context)[0] >= 0
-    assert mpc.far == [None]  # remembered_far_corners not connected
-
-
-def test_mpc_controller_passes_remembered_far_corners_to_the_rules():
-    mpc = FixedMpc(np.zeros(6))
-    dut = MpcController(mpc=mpc, num_keypoints=8, period=DT, offset=0.0, step_cap=10)
-    simulator = Simulator(dut)
-    context = simulator.get_mutable_context()
-    dut.GetInputPort("keypoints").FixValue(context, flat().ravel())
-    dut.GetInputPort("object_pose").FixValue(context, RigidTransform())
-    far = np.array([-0.1, 0.2, 0.0, 0.1, 0.2, 0.0])
-    dut.GetInputPort("remembered_far_corners").FixValue(context, far)
-    simulator.AdvanceTo(0.5 * DT)
-    dut.GetInputPort("remembered_far_corners").FixValue(context, np.full(6, np.nan))
-    simulator.AdvanceTo(1.5 * DT)
-    np.testing.assert_array_equal(mpc.far[0], far.reshape(2, 3))
-    assert mpc.far[1] is None  # NaN: the frame was read right
 
 
 def test_mpc_controller_remembers_the_cloth_seen_on_the_object():

@@ -68,25 +68,6 @@ def test_move_direction_against_the_edge():
     assert "direction" not in violated([0, 0.001, 0, 0, 0, 0])
 
 
-def test_rule_2_also_against_remembered_far_corners():
-    """With far-corner alternatives (the last frame f_R read right), rule 2
-    must hold against them as well as against the estimate."""
-    import dataclasses as dc
-
-    import torch
-
-    sideways = [0.01, 0, 0, 0.01, 0, 0]  # 90 degrees from s1 - s3 (-y)
-    assert "direction" not in violated(sideways)
-    # Remembered s3 to the right of s1, s4 where it is: moving the left
-    # gripper right now heads back onto that corner (180 degrees).
-    alt = torch.tensor([[0.15, 0.0, 0.0], [0.15, 0.30, 0.0]])
-    ctx = dc.replace(CTX, far_corner_alternatives=alt)
-    assert "direction" in violated(sideways, ctx=ctx)
-    assert "direction" not in violated([-0.01, 0, 0, 0.01, 0, 0], ctx=ctx)
-    with pytest.raises(ValueError, match="misread_grasp_error"):
-        SafetyConfig(misread_grasp_error=0.0)
-
-
 def test_cloth_inside_the_workspace():
     S = flat_state() + [0.0, -0.39, 0.0]
     assert "workspace" in violated([0, -0.02, 0, 0, -0.02, 0], S=S)

@@ -310,13 +310,16 @@ def _chamfer(camera, frame: Frame, demo: Demo, pose_now, rng) -> float:
 
 def ScoreEpisode(
     scenario: Scenario,
-    prepared: PreparedImitation,
+    prepared: PreparedImitation | None,
     run: EpisodeRun,
     on_violation: str = "stop",
 ) -> dict:
     """Success, final IoU and Chamfer distance against the demo's end state
     (simulation ground truth), rule breaks of the executed actions on the
-    estimated and on the true keypoints, and control-step latencies."""
+    estimated and on the true keypoints, and control-step latencies. The
+    estimated rule breaks are judged by the controller's rules for the demo
+    (`prepared.safety`; the scenario's own where `prepared` is None, for a
+    run without a final state)."""
     logs = run.logs
     steps = logs["steps"][:, 0]
     termination = int(logs["termination"][-1, 0])
@@ -330,7 +333,11 @@ def ScoreEpisode(
     safety_ctx = dc.replace(TaskSafetyContext(scenario), frame_pose=np.array(pose))
     tr = EpisodeTransitions(run.times, logs)
     estimated = CountRuleBreaks(
-        tr.estimated_before, tr.action, tr.estimated_after, prepared.safety, safety_ctx
+        tr.estimated_before,
+        tr.action,
+        tr.estimated_after,
+        scenario.safety if prepared is None else prepared.safety,
+        safety_ctx,
     )
     estimated.pop("at")
     # Row k holds the Chamfer distance of the image at (k - 1) dt, where the
