@@ -55,9 +55,9 @@ class RewardConfig:
     # from the other corner or interpolated. Both corners steer the grasp
     # prior and w_grasp. On the shipped hang demo f_R misreads them by up
     # to 24 cm where the towel hangs over the plate. .inf for both (the
-    # default): f_R's raw estimates (the paper's); `hang`, whose grasp prior
-    # and grasp terms lean on these corners, sets 9 px and 0.08 m
-    # (scenarios.yaml).
+    # default): f_R's raw estimates, tracked (the paper's estimates); 9 px
+    # and 0.08 m serve the grasp prior and grasp terms, which lean on these
+    # corners.
     demo_grasp_max_spread_px: float = math.inf
     demo_grasp_max_jump: float = math.inf
     # ... and dropped where it lies more than this [m] from where the

@@ -61,10 +61,10 @@ class SafetyConfig:
     # (SafetyContext.far_corners_may_drape; the side laid towards the top's
     # nearest point and square to the face it crosses). Once seen on the
     # object, the cloth is taken to stay there for the episode
-    # (MpcController), since later estimates can miss it. On for `hang`
-    # (scenarios.yaml); off by default: on `box_big` it also refuses the
-    # moves that carry the cloth onto the box, and can leave no feasible
-    # action while the far corners still trail behind.
+    # (MpcController), since later estimates can miss it. Off by default:
+    # on `box_big` it also refuses the moves that carry the cloth onto the
+    # box, and can leave no feasible action while the far corners still
+    # trail behind.
     hidden_corners_drape: bool = False
     # The controller's view only: rule 2 judged on a hypothesised hidden far
     # corner (the two switches above) uses tau_d_deg less this [deg], since

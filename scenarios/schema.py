@@ -568,13 +568,12 @@ class Scenario:
     workspace: WorkspaceConfig = dc.field(default_factory=WorkspaceConfig)
     motion: MotionConfig = dc.field(default_factory=MotionConfig)
     success: SuccessConfig = dc.field(default_factory=SuccessConfig)
+    # The method's settings (learning/policy.py's Policy: the controller's
+    # rules, the MPC, the demo reward, the keypoint tracker). A scenario
+    # file may not set them: LoadScenario copies them from the policy.
     safety: SafetyConfig = dc.field(default_factory=SafetyConfig)
-    # The imitation MPC's settings (the defaults are the paper's Algorithm 1
-    # at N = 500, h = 5).
     mpc: MpcConfig = dc.field(default_factory=MpcConfig)
-    # The demo reward's settings (the defaults are the paper's R_E).
     reward: RewardConfig = dc.field(default_factory=RewardConfig)
-    # The keypoint tracker's settings (learning/tracker.py; on by default).
     tracker: TrackerConfig = dc.field(default_factory=TrackerConfig)
     collection: CollectionConfig = dc.field(default_factory=CollectionConfig)
 
