@@ -69,9 +69,12 @@ class MpcConfig:
     # (Mpc._predict); false: f_D's output as it is (the paper's).
     project_predictions: bool = True
     # Progress tracking: J may move back by lag and ahead by lead per step
-    # (lead < 0: search the whole demo every step, as in the paper).
+    # (lead < 0, the default: search the whole demo every step, as in the
+    # paper). A window of 1 back and 2 ahead succeeded 5.6 pp more often at
+    # development seeds 0-2 (90 paired trials), Newcombe 95 % [-4.8, +15.9]:
+    # not a measurable benefit.
     progress_lag: int = 1
-    progress_lead: int = 2
+    progress_lead: int = -1
     # Which first action is applied: "best" (the paper's: the feasible
     # sampled sequence with the highest reward) or "mean" (the final elite
     # mean, when its predicted rollout is feasible; else the best). The best

@@ -78,7 +78,10 @@ class SafetyConfig:
     # millimetres of error decide on which side of it the true cloth is.
     # Where no sampled sequence keeps the margin, the MPC solves the step
     # again with the rule as written (Mpc.solve) rather than end the episode.
-    estimate_margin_deg: float = 5.0
+    # 0 (the paper's, the default): at 5 degrees, at development seeds 0-2
+    # (90 paired trials) the one policy succeeded 1.1 pp more often than
+    # without it, Newcombe 95 % [-8.9, +11.1]: not a measurable benefit.
+    estimate_margin_deg: float = 0.0
 
     def __post_init__(self):
         if not 0 < self.tau_c < self.tau_f:
