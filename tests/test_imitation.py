@@ -390,6 +390,7 @@ def small_mpc(dynamics, states) -> Mpc:
 def test_mpc_projects_predictions_to_heights_the_cloth_can_reach():
     states = pulled_demo()
     mpc = small_mpc(Rising(), states)
+    mpc.config = dc.replace(mpc.config, project_predictions=True)
     S = torch.as_tensor(states[0])
     a = torch.tensor([[0.0, 0.0, 0.02, 0.0, 0.0, 0.01]])
     nxt = mpc._predict(S[None], a)
