@@ -28,6 +28,7 @@ from pathlib import Path
 
 import numpy as np
 from fabric_imitation.learning.errors import InputError
+from fabric_imitation.learning.object_shape import ObjectParts
 from fabric_imitation.learning.state import NUM_KEYPOINTS, SIDES
 from fabric_imitation.scenarios.poses import ClothPose, GraspCorners, PoseOnTable
 from fabric_imitation.scenarios.schema import Scenario
@@ -52,6 +53,7 @@ from pydrake.geometry import (
     Box,
     Capsule,
     CollisionFilterDeclaration,
+    Cylinder,
     GeometryInstance,
     GeometrySet,
     InMemoryMesh,
@@ -179,59 +181,74 @@ def _friction_props(
     return props
 
 
-def _static_boxes(scenario: Scenario, X_WO: RigidTransform) -> dict:
-    """Name -> (X_WB box centre in world, size, friction) of the table and the
-    task object (if any)."""
+def _static_parts(scenario: Scenario, X_WO: RigidTransform) -> dict:
+    """Name -> (X_WP part centre in world, shape "box" or "cylinder" (its
+    axis along the part frame's z), size, friction) of the table and the
+    task object's parts (learning/object_shape.py), if it has any."""
     table, obj = scenario.table, scenario.object
-    boxes = {
+    parts = {
         "table": (
             RigidTransform([0, 0, -table.size[2] / 2]),
+            "box",
             table.size,
             table.friction,
         )
     }
     if obj.kind != "none":
-        boxes["object"] = (
-            X_WO @ RigidTransform([0, 0, obj.size[2] / 2]),
-            obj.size,
-            obj.friction,
-        )
-    return boxes
+        shapes = ObjectParts(obj.kind, obj.size)
+        for i, part in enumerate(shapes):
+            # Drake's and newton's cylinders run along z; a bar along x is
+            # turned onto it.
+            R = (
+                RotationMatrix.MakeYRotation(np.pi / 2)
+                if part.axis == "x"
+                else RotationMatrix()
+            )
+            name = "object" if len(shapes) == 1 else f"object_{i}"
+            parts[name] = (
+                X_WO @ RigidTransform(R, list(part.centre)),
+                part.kind,
+                part.size,
+                obj.friction,
+            )
+    return parts
 
 
 def _add_table_and_object(plant: MultibodyPlant, scenario: Scenario) -> RigidTransform:
     obj = scenario.object
     X_WO = PoseOnTable(obj.pose)
-    boxes = _static_boxes(scenario, X_WO)
-    X_WB, size, mu = boxes["table"]
-    _register_box(
+    parts = _static_parts(scenario, X_WO)
+    X_WB, _, size, mu = parts.pop("table")
+    _register_shape(
         plant,
         plant.world_body(),
         X_WB,
+        "box",
         size,
         "table",
         mu,
         Rgba(0.72, 0.56, 0.40, 1.0),
         TABLE_LABEL,
     )
-    if "object" in boxes:
+    if parts:
         body = plant.AddRigidBody(
             "object",
             plant.AddModelInstance("object"),
             SpatialInertia.SolidBoxWithMass(1.0, *obj.size),
         )
         plant.WeldFrames(plant.world_frame(), body.body_frame(), X_WO)
-        X_WB, size, mu = boxes["object"]
-        _register_box(
-            plant,
-            body,
-            X_WO.inverse() @ X_WB,
-            size,
-            obj.kind,
-            mu,
-            Rgba(0.25, 0.35, 0.75, 1.0),
-            OBJECT_LABEL,
-        )
+        for name, (X_WP, shape, size, mu) in parts.items():
+            _register_shape(
+                plant,
+                body,
+                X_WO.inverse() @ X_WP,
+                shape,
+                size,
+                name.replace("object", obj.kind),
+                mu,
+                Rgba(0.25, 0.35, 0.75, 1.0),
+                OBJECT_LABEL,
+            )
         if obj.marker.id >= 0:
             _add_marker_plaque(plant, body, obj.marker)
     return X_WO
@@ -317,8 +334,12 @@ def _add_hands(plant: MultibodyPlant, holders: dict, X_holder_clip: dict) -> Non
         plant.RegisterVisualGeometry(holders[side], instance)
 
 
-def _register_box(plant, body, X_BG, size, name, mu, color: Rgba, label: int) -> None:
-    shape = Box(*size)
+def _register_shape(
+    plant, body, X_BG, kind, size, name, mu, color: Rgba, label: int
+) -> None:
+    """A box, or a cylinder (size: diameter, diameter, length along z), with
+    collision, illustration and perception roles."""
+    shape = Cylinder(size[0] / 2, size[2]) if kind == "cylinder" else Box(*size)
     plant.RegisterCollisionGeometry(
         body, X_BG, shape, name, _friction_props(mu, RIGID_POINT_STIFFNESS)
     )
@@ -392,8 +413,8 @@ def _add_vbd_cloth(builder, scene_graph, scenario, mesh, X_WC, X_WO):
     """The VBD cloth system, with its slab registered as a deformable
     geometry of its own SceneGraph source (camera and meshcat see it)."""
     from fabric_imitation.systems.cloth_simulator import (
-        BoxCollider,
         ClothSimulator,
+        StaticCollider,
     )
 
     cloth, vbd = scenario.cloth, scenario.cloth.vbd
@@ -406,13 +427,14 @@ def _add_vbd_cloth(builder, scene_graph, scenario, mesh, X_WC, X_WO):
     )
     top = mesh.top_layer.ravel()
     colliders = [
-        BoxCollider(
+        StaticCollider(
             X_WB,
             tuple(size),
             mu,
             contact=vbd.table_contact if name == "table" else "surface",
+            shape=shape,
         )
-        for name, (X_WB, size, mu) in _static_boxes(scenario, X_WO).items()
+        for name, (X_WB, shape, size, mu) in _static_parts(scenario, X_WO).items()
     ]
     system = ClothSimulator(
         sheet_W=(
@@ -772,6 +794,7 @@ def _add_contact_monitor(builder, plant, scenario: Scenario, X_WO) -> None:
         GripperObjectContact(
             grippers=_gripper_bodies(plant, scenario),
             X_WO=X_WO,
+            object_kind=scenario.object.kind,
             object_size=np.array(scenario.object.size, float),
             period=scenario.plant_config.time_step,
         ),

@@ -10,6 +10,7 @@ import math
 
 import numpy as np
 import torch
+from fabric_imitation.learning.object_shape import object_signed_distance
 from fabric_imitation.learning.state import corner_indices
 
 
@@ -165,9 +166,13 @@ class SafetyContext:
     edge_length: float  # L
     workspace_lower: np.ndarray  # (3,)
     workspace_upper: np.ndarray  # (3,)
-    # The task object as an axis-aligned box in the states' frame (the object
-    # frame O: centred at the origin in x, y, from z = 0 up), or None.
+    # The task object's bounding box in the states' frame (the object frame
+    # O: centred at the origin in x, y, from z = 0 up), or None; and its kind
+    # (learning/object_shape.py): rule 4 judges a box or plate by its box
+    # grown by the margin, a cylinder or rail by its signed distance. The
+    # hidden-corner hypotheses read the bounding box.
     object_size: np.ndarray | None = None
+    object_kind: str = "box"
     # Pose [x, y, yaw_rad] of the states' frame in world, where the workspace
     # box is defined (None: the states are in world).
     frame_pose: np.ndarray | None = None
@@ -280,11 +285,15 @@ def rule_violations(
     if ctx.object_size is not None:
         half = torch.as_tensor(ctx.object_size, dtype=S.dtype) / 2
         margin = config.object_margin
-        inside = (
-            (grippers[..., 0].abs() < half[0] + margin)
-            & (grippers[..., 1].abs() < half[1] + margin)
-            & (grippers[..., 2] < 2 * half[2] + margin)
-        )
+        if ctx.object_kind in ("box", "plate"):
+            inside = (
+                (grippers[..., 0].abs() < half[0] + margin)
+                & (grippers[..., 1].abs() < half[1] + margin)
+                & (grippers[..., 2] < 2 * half[2] + margin)
+            )
+        else:
+            kind, size = ctx.object_kind, ctx.object_size
+            inside = object_signed_distance(grippers, kind, size) < margin
         out["object"] = inside.any(-1)
         if ctx.hand_spheres is not None:
             out["object"] = out["object"] | _hand_in_box(grippers, ctx)
@@ -295,8 +304,8 @@ def rule_violations(
 
 def _hand_in_box(grippers: torch.Tensor, ctx: SafetyContext) -> torch.Tensor:
     """(...,) True where a sphere of either gripper's hand (ctx.hand_spheres,
-    world-aligned, turned into the states' frame) enters the object's box
-    (the states' frame: centred in x and y, from z = 0 up)."""
+    world-aligned, turned into the states' frame) enters the object (the
+    states' frame: centred in x and y, from z = 0 up)."""
     spheres = torch.as_tensor(ctx.hand_spheres, dtype=grippers.dtype)
     offsets, radius = spheres[:, :3], spheres[:, 3]
     if ctx.frame_pose is not None:
@@ -310,11 +319,8 @@ def _hand_in_box(grippers: torch.Tensor, ctx: SafetyContext) -> torch.Tensor:
             ],
             -1,
         )
-    size = torch.as_tensor(ctx.object_size, dtype=grippers.dtype)
-    centre = torch.stack([size.new_zeros(()), size.new_zeros(()), size[2] / 2])
     points = grippers[..., None, :] + offsets  # (..., 2, n, 3)
-    q = (points - centre).abs() - size / 2
-    distance = q.clamp_min(0.0).norm(dim=-1) + q.max(-1).values.clamp_max(0.0)
+    distance = object_signed_distance(points, ctx.object_kind, ctx.object_size)
     return (distance < radius).any(-1).any(-1)
 
 

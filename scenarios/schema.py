@@ -274,7 +274,7 @@ class ClothConfig:
 
 
 MATERIAL_MODELS = ("linear_corotated", "corotated", "neohookean", "linear")
-OBJECT_KINDS = ("none", "box", "plate")
+OBJECT_KINDS = ("none", "box", "plate", "cylinder", "rail")
 
 
 ARUCO_DICTIONARIES = (
@@ -311,9 +311,13 @@ class MarkerConfig:
 
 @dc.dataclass
 class ObjectConfig:
-    # none (contact-free prior scene), box (cover task) or plate (hang task).
+    # none (contact-free prior scene); box or cylinder (a can) to cover;
+    # plate or rail (a towel rail: a bar on two posts) to hang a towel on.
     kind: str = "none"
-    # Size x, y, z [m] in the object frame; it stands on the table.
+    # Size x, y, z [m] in the object frame, the shape's bounding box; it
+    # stands on the table. cylinder: diameter, diameter, height; rail: width
+    # over the posts, the bar's (and posts') thickness, height of the bar's
+    # top (learning/object_shape.py).
     size: list[float] = dc.field(default_factory=lambda: [0.14, 0.09, 0.06])
     # Pose on the table: x, y [m], yaw [deg].
     pose: list[float] = dc.field(default_factory=lambda: [0.0, -0.14, 0.0])
@@ -324,6 +328,16 @@ class ObjectConfig:
         self.marker.__post_init__()
         _check(self.kind in OBJECT_KINDS, "object.kind", self.kind)
         _check(len(self.size) == 3 and min(self.size) > 0, "object.size", self.size)
+        if self.kind == "cylinder" and abs(self.size[0] - self.size[1]) > 1e-9:
+            raise ValueError(
+                f"object.size {self.size}: a cylinder's x and y sizes are its "
+                "diameter and must be equal"
+            )
+        if self.kind == "rail" and self.size[0] <= 3 * self.size[1]:
+            raise ValueError(
+                f"object.size {self.size}: a rail's width must be more than 3 "
+                "times its bar's thickness (two posts and a gap between them)"
+            )
         _check(len(self.pose) == 3, "object.pose", self.pose)
         _check(self.friction >= 0, "object.friction", self.friction)
 

@@ -60,23 +60,33 @@ class ClothDivergedError(RuntimeError):
     """The cloth simulation produced non-finite or runaway vertices."""
 
 
+COLLIDER_SHAPES = ("box", "cylinder")
+
+
 @dc.dataclass(frozen=True)
-class BoxCollider:
-    """A static box the cloth collides with: pose of its centre, full size
-    [m], Coulomb friction, and which of the cloth's elements touch it where
-    `VbdConfig.surface_contact` is on (CONTACT_ELEMENTS: "surface"
+class StaticCollider:
+    """A static box or cylinder the cloth collides with: pose of its centre,
+    full size [m] (a cylinder: diameter, diameter, length along its frame's
+    z axis), Coulomb friction, and which of the cloth's elements touch it
+    where `VbdConfig.surface_contact` is on (CONTACT_ELEMENTS: "surface"
     particles, edges and faces; "edges" particles and edges; "particles")."""
 
     X_WB: RigidTransform
     size: tuple[float, float, float]
     friction: float
     contact: str = "surface"
+    shape: str = "box"
 
     def __post_init__(self):
         if self.contact not in CONTACT_ELEMENTS:
             raise ValueError(
                 f"unknown contact {self.contact!r} (one of: "
                 f"{', '.join(CONTACT_ELEMENTS)})"
+            )
+        if self.shape not in COLLIDER_SHAPES:
+            raise ValueError(
+                f"unknown collider shape {self.shape!r} (one of: "
+                f"{', '.join(COLLIDER_SHAPES)})"
             )
 
 
@@ -270,31 +280,46 @@ def _define_hold_kernel(wp):
         return start[1] - start[0] + alpha * (end[1] - end[0] - start[1] + start[0])
 
     @wp.func
-    def outside_boxes(
+    def outside_colliders(
         x: wp.vec3,
         box_p: wp.array[wp.vec3],
         box_R: wp.array[wp.mat33],
         box_half: wp.array[wp.vec3],
+        is_round: wp.array[wp.int32],
     ):
-        """`x`, or where it lies inside a box, the nearest point of that
-        box's surface (along the axis of least depth)."""
+        """`x`, or where it lies inside a collider, the nearest point of that
+        collider's surface: a box's along the axis of least depth, a
+        cylinder's (`is_round` 1; axis z, radius half[0]) radially or along its
+        axis, whichever is shallower."""
         for b in range(box_p.shape[0]):
             local = wp.transpose(box_R[b]) * (x - box_p[b])
             h = box_half[b]
-            depth = wp.vec3(
-                h[0] - wp.abs(local[0]),
-                h[1] - wp.abs(local[1]),
-                h[2] - wp.abs(local[2]),
-            )
-            if depth[0] > 0.0 and depth[1] > 0.0 and depth[2] > 0.0:
-                k = 0
-                if depth[1] < depth[k]:
-                    k = 1
-                if depth[2] < depth[k]:
-                    k = 2
-                out = local
-                out[k] = wp.sign(local[k]) * h[k]
-                x = box_p[b] + box_R[b] * out
+            out = local
+            if is_round[b] != 0:
+                r = wp.sqrt(local[0] * local[0] + local[1] * local[1])
+                radial = h[0] - r
+                axial = h[2] - wp.abs(local[2])
+                if radial > 0.0 and axial > 0.0:
+                    if radial < axial and r > 1.0e-9:
+                        out[0] = local[0] * h[0] / r
+                        out[1] = local[1] * h[0] / r
+                    else:
+                        out[2] = wp.sign(local[2]) * h[2]
+                    x = box_p[b] + box_R[b] * out
+            else:
+                depth = wp.vec3(
+                    h[0] - wp.abs(local[0]),
+                    h[1] - wp.abs(local[1]),
+                    h[2] - wp.abs(local[2]),
+                )
+                if depth[0] > 0.0 and depth[1] > 0.0 and depth[2] > 0.0:
+                    k = 0
+                    if depth[1] < depth[k]:
+                        k = 1
+                    if depth[2] < depth[k]:
+                        k = 2
+                    out[k] = wp.sign(local[k]) * h[k]
+                    x = box_p[b] + box_R[b] * out
         return x
 
     @wp.kernel
@@ -313,6 +338,7 @@ def _define_hold_kernel(wp):
         box_p: wp.array[wp.vec3],
         box_R: wp.array[wp.mat33],
         box_half: wp.array[wp.vec3],
+        is_round: wp.array[wp.int32],
         q: wp.array[wp.vec3],
         qd: wp.array[wp.vec3],
     ):
@@ -334,8 +360,12 @@ def _define_hold_kernel(wp):
         # A held particle carried into a collider (the patch reaches past
         # the fingers, which keep clear of the object) lies on its surface,
         # as the cloth around a pinch folds over an edge.
-        q[p] = outside_boxes(
-            start[s] + alpha * (end[s] - start[s]) + offset, box_p, box_R, box_half
+        q[p] = outside_colliders(
+            start[s] + alpha * (end[s] - start[s]) + offset,
+            box_p,
+            box_R,
+            box_half,
+            is_round,
         )
         qd[p] = velocity
 
@@ -354,7 +384,7 @@ class ClothSimulator(LeafSystem):
         keypoint_vertices: (M,) slab vertex indices of the keypoints.
         grasped: side -> particle indices held by that gripper.
         grippers_W0: side -> the gripper's world position at rest.
-        colliders: static boxes (table, task object).
+        colliders: static boxes and cylinders (table, task object's parts).
         settings: the scenario's `cloth.vbd`.
         friction: the cloth's Coulomb friction with every collider.
         time_step: period of the discrete update [s].
@@ -372,7 +402,7 @@ class ClothSimulator(LeafSystem):
         keypoint_vertices: np.ndarray,
         grasped: dict,
         grippers_W0: dict,
-        colliders: list[BoxCollider],
+        colliders: list[StaticCollider],
         settings: VbdConfig,
         friction: float,
         time_step: float,
@@ -602,14 +632,24 @@ class _VbdEngine:
             )
             p = box.X_WB.translation()
             q = box.X_WB.rotation().ToQuaternion()  # w, x, y, z
-            shape = builder.add_shape_box(
-                -1,
-                xform=wp.transform(wp.vec3(*p), wp.quat(q.x(), q.y(), q.z(), q.w())),
-                hx=box.size[0] / 2,
-                hy=box.size[1] / 2,
-                hz=box.size[2] / 2,
-                cfg=cfg,
-            )
+            xform = wp.transform(wp.vec3(*p), wp.quat(q.x(), q.y(), q.z(), q.w()))
+            if box.shape == "cylinder":
+                shape = builder.add_shape_cylinder(
+                    -1,
+                    xform=xform,
+                    radius=box.size[0] / 2,
+                    half_height=box.size[2] / 2,
+                    cfg=cfg,
+                )
+            else:
+                shape = builder.add_shape_box(
+                    -1,
+                    xform=xform,
+                    hx=box.size[0] / 2,
+                    hy=box.size[1] / 2,
+                    hz=box.size[2] / 2,
+                    cfg=cfg,
+                )
             for name in CONTACT_ELEMENTS[box.contact]:
                 left_out.setdefault(name, []).append(shape)
         builder.add_cloth_mesh(
@@ -680,6 +720,11 @@ class _VbdEngine:
             dtype=wp.vec3,
             device="cpu",
         )
+        self._round = wp.array(
+            np.array([b.shape == "cylinder" for b in colliders], np.int32),
+            dtype=wp.int32,
+            device="cpu",
+        )
         self._n = len(sheet_W)
         self._hold = _hold_kernel(wp)
         self._bend = None
@@ -737,6 +782,7 @@ class _VbdEngine:
                     self._box_p,
                     self._box_R,
                     self._box_half,
+                    self._round,
                     s0.particle_q,
                     s0.particle_qd,
                 ],

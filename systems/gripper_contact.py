@@ -8,7 +8,7 @@ point, fingers closed on the cloth and pointing down, so that the anchor
 grippers can carry the same shape as collision geometry.
 
 `GripperObjectContact` checks every plant step whether any gripper capsule
-penetrates the task object (an axis-aligned box in its own frame), and
+penetrates the task object (its shape: learning/object_shape.py), and
 latches the first time it does: the benchmark's collision event. It computes
 the distance itself rather than asking SceneGraph, so it judges the Panda
 arms too, whose collisions the station filters out.
@@ -17,6 +17,7 @@ arms too, whose collisions the station filters out.
 import dataclasses as dc
 
 import numpy as np
+from fabric_imitation.learning.object_shape import ObjectSignedDistance
 from fabric_imitation.scenarios.schema import Scenario
 from pydrake.common.value import AbstractValue
 from pydrake.math import RigidTransform, RotationMatrix
@@ -71,16 +72,6 @@ def PandaHandCapsules() -> tuple[Capsule, ...]:
     return (hand, *fingers)
 
 
-def BoxSignedDistance(p_O: np.ndarray, size: np.ndarray) -> np.ndarray:
-    """Signed distance [m] of points (..., 3) in the box's frame O (centred in
-    x and y, from z = 0 to size[2]) to the box: negative inside."""
-    half = np.asarray(size, float) / 2
-    q = np.abs(p_O - np.array([0.0, 0.0, half[2]])) - half
-    outside = np.linalg.norm(np.maximum(q, 0.0), axis=-1)
-    inside = np.minimum(q.max(axis=-1), 0.0)
-    return outside + inside
-
-
 def PandaLinkCapsules() -> dict[str, tuple[Capsule, ...]]:
     """The same capsules in the frames of the Panda model's own links (as
     `panda_collision.urdf` places them)."""
@@ -105,15 +96,16 @@ class GripperBody:
 def CapsulesPenetration(
     capsules: tuple[Capsule, ...],
     X_OB: RigidTransform,
+    object_kind: str,
     object_size: np.ndarray,
 ) -> float:
     """The deepest penetration [m] of the capsules (body frame B, the body
-    at X_OB in the object's frame) into the object's box (> 0), or the
-    smallest clearance as a negative number."""
+    at X_OB in the object's frame) into the object (> 0), or the smallest
+    clearance as a negative number."""
     pts = np.vstack([c.samples() for c in capsules])
     radii = np.concatenate([np.full(len(c.samples()), c.radius) for c in capsules])
     p_O = X_OB.multiply(pts.T).T
-    return float((radii - BoxSignedDistance(p_O, object_size)).max())
+    return float((radii - ObjectSignedDistance(p_O, object_kind, object_size)).max())
 
 
 class GripperObjectContact(LeafSystem):
@@ -133,10 +125,12 @@ class GripperObjectContact(LeafSystem):
         *,
         grippers: list[GripperBody],
         X_WO: RigidTransform,
+        object_kind: str,
         object_size: np.ndarray,
         period: float,
     ):
         super().__init__()
+        self._kind = object_kind
         self._size = np.asarray(object_size, float)
         self._X_OW = X_WO.inverse()
         # Per body: its capsules' axis samples (n, 3) and radii (n,).
@@ -160,7 +154,7 @@ class GripperObjectContact(LeafSystem):
         deepest = -np.inf
         for index, pts, radii in self._bodies:
             p_O = (self._X_OW @ poses[index]).multiply(pts.T).T
-            depth = radii - BoxSignedDistance(p_O, self._size)
+            depth = radii - ObjectSignedDistance(p_O, self._kind, self._size)
             deepest = max(deepest, float(depth.max()))
         return deepest
 

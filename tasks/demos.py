@@ -33,21 +33,28 @@ def _pair(scenario: Scenario, half_width: float, y: float, z: float) -> np.ndarr
 
 
 def _cover_waypoints(scenario: Scenario, start: np.ndarray) -> list[np.ndarray]:
-    """Box cover: lift the grasped edge, bring it behind the box, drag the cloth
-    over the top towards the robot, lower it just in front of the box."""
+    """Cover: lift the grasped edge, bring it behind the object, drag the
+    cloth over the top towards the robot, lower it just in front of the
+    object."""
     sx, sy, sz = scenario.object.size
     w = 0.45 * scenario.cloth.size[0]
     lift = start.copy()
     lift[:, 2] = sz + 0.06
-    # The hand above the fingers must not come down on the box's top edge,
-    # whichever way the box is turned under it.
-    lowest = max(0.015, sz + HAND_CLEARANCE - HandHeight(scenario))
+    lowest = CoverEdgeHeight(scenario)
     return [
         lift,
         _pair(scenario, w, sy / 2 + 0.05, sz + 0.08),
         _pair(scenario, w, -sy / 2 - 0.02, sz + 0.06),
         _pair(scenario, w, -sy / 2 - 0.035, lowest),
     ]
+
+
+def CoverEdgeHeight(scenario: Scenario) -> float:
+    """Height [m] at which the cover lowers the grasped edge in front of the
+    object: 1.5 cm, or higher where the hand above the fingers would come
+    down on the object's top edge, whichever way the object is turned
+    under it."""
+    return max(0.015, scenario.object.size[2] + HAND_CLEARANCE - HandHeight(scenario))
 
 
 # How far [m] above the object's top the hand itself (not its fingers)
@@ -88,11 +95,15 @@ def _hang_waypoints(scenario: Scenario, start: np.ndarray) -> list[np.ndarray]:
     closer together than for the box (0.76 of the edge) so the grasped
     corners pass near the plate's ends."""
     sx, sy, sz = scenario.object.size
+    length = scenario.cloth.size[1]
     w = 0.38 * scenario.cloth.size[0]
-    high = max(sz, scenario.cloth.size[1]) + 0.06
+    # The edge crosses 6 cm above the cloth's length or the object's top,
+    # and at least half the cloth's length (and 1 cm) above the top, so
+    # that about half of it has caught behind.
+    r = max(length + 0.06 - sz, length / 2 + 0.01)
+    high = sz + r
     lift = start.copy()
     lift[:, 2] = high
-    r = high - sz
     # The arc ends where the hand, turned any way about the vertical, stays
     # HAND_CLEARANCE in front of the plate.
     reach = HandReach(scenario) + HAND_CLEARANCE
@@ -128,13 +139,71 @@ def PlanActions(
     return np.array(actions)
 
 
+# Covering, the height at which the grasped edge hangs in front of the
+# object (CoverEdgeHeight: the cloth down the back is longer than the front
+# by that much) may be at most this fraction of the top's depth, whose
+# friction holds the cover (`fabric-imitate bench demos`).
+COVER_OVERHANG_OF_DEPTH = 2 / 3
+
+# Hanging, the object's top must be at least this far [m] above half the
+# cloth's length, or the towel's longer side reaches the table.
+HANG_ABOVE_HALF_LENGTH = 0.05
+
+
+def CheckDemoServes(scenario: Scenario) -> None:
+    """Raises InputError, stating the geometric bound, where the scripted
+    demo cannot do the scenario's task with its cloth and object."""
+    sx, sy, sz = scenario.object.size
+    width, length = scenario.cloth.size
+    what = f"{scenario.object.kind} of size {list(scenario.object.size)}"
+    if scenario.task == "box":
+        span = 0.9 * width
+        if sx > span + 1e-9:
+            raise InputError(
+                f"the scripted cover cannot serve a {what}: its width "
+                f"{sx:g} m is more than the grasped edge's span, 0.9 x the "
+                f"cloth's {width:g} m = {span:.3f} m"
+            )
+        overhang = CoverEdgeHeight(scenario)
+        bound = COVER_OVERHANG_OF_DEPTH * sy
+        if overhang > bound + 1e-9:
+            raise InputError(
+                f"the scripted cover cannot serve a {what}: the grasped edge "
+                f"hangs in front {overhang:.3f} m above the table (where the "
+                f"hand clears its top), more than {COVER_OVERHANG_OF_DEPTH:.2f} "
+                f"of the top's depth {sy:g} m = {bound:.3f} m, so the cloth "
+                "down its back pulls the cover off"
+            )
+    elif scenario.task == "hang":
+        bound = length / 2 + HANG_ABOVE_HALF_LENGTH
+        if sz < bound - 1e-9:
+            raise InputError(
+                f"the scripted hang cannot serve a {what}: its height {sz:g} m "
+                f"is less than {bound:.3f} m, half the cloth's length "
+                f"{length:g} m plus {HANG_ABOVE_HALF_LENGTH:g} m (the towel "
+                "would reach the table)"
+            )
+        if scenario.object.kind == "rail" and sx < width + 2 * sy - 1e-9:
+            raise InputError(
+                f"the scripted hang cannot serve a {what}: its width {sx:g} m "
+                f"is less than the cloth's width {width:g} m plus both posts "
+                f"({2 * sy:g} m), so the towel would not hang between them"
+            )
+
+
 def ScriptedDemoPlan(scenario: Scenario, *, hold_steps: int = 1) -> DemoPlan:
-    """The scripted demonstration of the scenario's task."""
+    """The scripted demonstration of the scenario's task.
+
+    Raises:
+        InputError: the task has no scripted demo, or the object is a size
+            it cannot serve (CheckDemoServes).
+    """
     if scenario.task not in _WAYPOINTS:
         raise InputError(
             f"scenario task {scenario.task!r} has no scripted demonstration "
             f"(tasks with one: {', '.join(_WAYPOINTS)})"
         )
+    CheckDemoServes(scenario)
     corners = GraspCorners(scenario)
     start = np.stack([corners["left"], corners["right"]])
     waypoints = _WAYPOINTS[scenario.task](scenario, start)

@@ -124,6 +124,7 @@ def TaskSafetyContext(scenario: Scenario, *, estimated: bool = False) -> SafetyC
         workspace_lower=lower,
         workspace_upper=np.array(scenario.workspace.upper, float),
         object_size=np.array(scenario.object.size, float) if has_object else None,
+        object_kind=scenario.object.kind if has_object else "box",
         frame_pose=(
             np.array(PlanarPose.FromDegrees(scenario.object.pose))
             if has_object
@@ -215,6 +216,7 @@ def CheckGrippersClear(scenario: Scenario) -> None:
         depth = CapsulesPenetration(
             GraspCapsules(scenario),
             X_OW @ RigidTransform(p_W),
+            scenario.object.kind,
             np.array(scenario.object.size, float),
         )
         if depth >= -START_CLEARANCE:

@@ -35,10 +35,10 @@ def _covered(points_xy: np.ndarray, tri_xy: np.ndarray) -> np.ndarray:
 def BoxCoverSuccess(
     scenario: Scenario, positions_W: np.ndarray, top_grid: np.ndarray
 ) -> SuccessReport:
-    """The cloth covers at least `success.box_cover_fraction` of the box's top
-    face and rests on it: a top-face sample point counts as covered when a
-    cloth surface triangle lying on the top face (within the rest tolerance)
-    is over it."""
+    """The cloth covers at least `success.box_cover_fraction` of the object's
+    top face (a box's rectangle, a cylinder's disc) and rests on it: a
+    top-face sample point counts as covered when a cloth surface triangle
+    lying on the top face (within the rest tolerance) is over it."""
     size = np.array(scenario.object.size)
     tol = scenario.success.rest_tolerance
     p_O = world_to_object(positions_W, ObjectPlanarPose(scenario))
@@ -49,6 +49,8 @@ def BoxCoverSuccess(
     gx = np.linspace(-size[0] / 2, size[0] / 2, n)
     gy = np.linspace(-size[1] / 2, size[1] / 2, n)
     samples = np.stack(np.meshgrid(gx, gy, indexing="ij"), -1).reshape(-1, 2)
+    if scenario.object.kind == "cylinder":
+        samples = samples[np.hypot(*samples.T) <= size[0] / 2 + 1e-9]
     covered = (
         _covered(samples, p_O[tris[resting]][:, :, :2])
         if resting.any()
@@ -62,8 +64,8 @@ def BoxCoverSuccess(
 
 
 def HangSuccess(scenario: Scenario, positions_W: np.ndarray) -> SuccessReport:
-    """The cloth rests on the plate's top edge, with parts hanging on both
-    sides, and does not reach the table."""
+    """The cloth rests on the top edge of the plate (or the rail's bar), with
+    parts hanging on both sides, and does not reach the table."""
     size = np.array(scenario.object.size)
     tol = scenario.success.rest_tolerance
     thickness = scenario.cloth.thickness

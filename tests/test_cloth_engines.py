@@ -372,7 +372,7 @@ def test_a_held_particle_carried_into_a_collider_lies_on_its_surface():
     instead, and the right one, outside any box, follows its gripper."""
     from fabric_imitation.scenarios.schema import VbdConfig
     from fabric_imitation.systems.cloth_simulator import (
-        BoxCollider,
+        StaticCollider,
         _VbdEngine,
     )
     from pydrake.math import RigidTransform
@@ -380,7 +380,7 @@ def test_a_held_particle_carried_into_a_collider_lies_on_its_surface():
     tris, rest = _sheet(4, 4, spacing=0.04)
     sheet = rest + [0.0, 0.0, 0.05]
     left, right = 0, 12  # (0, 0) and (0.12, 0), the edge y = 0
-    box = BoxCollider(RigidTransform([0.0, -0.1, 0.05]), (0.1, 0.1, 0.1), 0.3)
+    box = StaticCollider(RigidTransform([0.0, -0.1, 0.05]), (0.1, 0.1, 0.1), 0.3)
     engine = _VbdEngine(
         sheet_W=sheet,
         triangles=tris,
@@ -397,3 +397,40 @@ def test_a_held_particle_carried_into_a_collider_lies_on_its_surface():
     q, _ = engine.step(x, start.ravel(), end.ravel(), held=True)
     np.testing.assert_allclose(q[left], [0.0, -0.05, 0.05], atol=1e-9)
     np.testing.assert_allclose(q[right], end[1], atol=1e-9)
+
+
+def test_a_held_particle_carried_into_a_cylinder_lies_on_its_side():
+    """As above with a can 10 cm across standing 2 cm to the right of the
+    box's place: the held particle carried 4.5 mm inside it goes out
+    radially onto its side, not along an axis as a box's would."""
+    from fabric_imitation.scenarios.schema import VbdConfig
+    from fabric_imitation.systems.cloth_simulator import (
+        StaticCollider,
+        _VbdEngine,
+    )
+    from pydrake.math import RigidTransform
+
+    tris, rest = _sheet(4, 4, spacing=0.04)
+    sheet = rest + [0.0, 0.0, 0.05]
+    left, right = 0, 12
+    centre = np.array([0.02, -0.1, 0.05])
+    can = StaticCollider(RigidTransform(centre), (0.1, 0.1, 0.1), 0.3, shape="cylinder")
+    engine = _VbdEngine(
+        sheet_W=sheet,
+        triangles=tris,
+        grasped={"left": [left], "right": [right]},
+        grippers_W0={"left": sheet[left], "right": sheet[right]},
+        colliders=[can],
+        settings=VbdConfig(),
+        friction=0.3,
+        time_step=0.01,
+    )
+    start = np.stack([sheet[left], sheet[right]])
+    end = start + [0.0, -0.06, 0.0]
+    x = np.r_[sheet.ravel(), np.zeros(sheet.size)]
+    q, _ = engine.step(x, start.ravel(), end.ravel(), held=True)
+    radial = end[0] - centre
+    radial[2] = 0.0
+    expected = centre + radial * 0.05 / np.linalg.norm(radial)
+    expected[2] = end[0][2]
+    np.testing.assert_allclose(q[left], expected, atol=1e-6)

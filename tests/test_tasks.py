@@ -23,7 +23,7 @@ from tests.conftest import SMALL_CLOTH
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("name", ["box", "hang", "box_big"])
+@pytest.mark.parametrize("name", ["box", "hang", "box_big", "cylinder", "rail"])
 def test_scripted_demo_succeeds_and_untouched_cloth_does_not(name):
     scenario = LoadScenario(scenario_name=name)
     plan = ScriptedDemoPlan(scenario)
@@ -41,6 +41,52 @@ def test_scripted_demo_succeeds_and_untouched_cloth_does_not(name):
         capture_frames=False
     )
     assert not still.success.success, still.success.details
+
+
+@pytest.mark.parametrize(
+    "name, size, bound",
+    [
+        ("hang", [0.17, 0.01, 0.12], "less than 0.200 m"),
+        ("rail", [0.45, 0.02, 0.18], "less than 0.200 m"),
+        ("rail", [0.32, 0.02, 0.24], "plus both posts"),
+        ("cylinder", [0.06, 0.06, 0.15], "more than 0.67 of the top's depth"),
+        ("box", [0.28, 0.09, 0.06], "grasped edge's span"),
+    ],
+)
+def test_a_size_the_scripted_demo_cannot_serve_is_refused_with_its_bound(
+    name, size, bound
+):
+    scenario = LoadScenario(
+        scenario_name=name, scenario_text=f"object: {{size: {size}}}"
+    )
+    with pytest.raises(InputError, match=bound) as e:
+        ScriptedDemoPlan(scenario)
+    assert "\n" not in str(e.value)
+
+
+def test_a_size_the_scripted_demo_cannot_serve_exits_2_with_one_line(tmp_path):
+    out = tmp_path / "demo"
+    done = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "fabric_imitation.tools.cli",
+            "demo",
+            "record",
+            "--scenario",
+            "hang",
+            "--scenario-text",
+            "object: {size: [0.17, 0.01, 0.12]}",
+            "--out",
+            str(out),
+        ],
+        capture_output=True,
+        text=True,
+    )
+    assert done.returncode == 2
+    lines = done.stderr.strip().splitlines()
+    assert lines[-1].startswith("fabric-imitate: error: the scripted hang cannot")
+    assert not out.exists()
 
 
 def test_scripted_plan_is_defined_in_the_object_frame():

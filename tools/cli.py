@@ -62,6 +62,9 @@ DESCRIPTIONS = {
     "bench mpc": "MPC iterations and control steps, idle and with one core loaded.",
     "bench occlusion": "f_R's keypoint error as more of the fabric is hidden "
     "(grippers, partial masks), on the shipped demos' frames.",
+    "bench demos": "The scripted demos over each object kind's size range "
+    "(corners and centre, nominal and two moved poses): successes, rule breaks, "
+    "contacts and refusals.",
     "bench tracker": "The keypoint tracker against f_R alone on the shipped "
     "demos' frames, and f_R's error model (error against heatmap spread).",
     "report": "Build the evaluation's tables and figures (success with Wilson "
@@ -761,6 +764,24 @@ def _bench_tracker(args) -> dict:
     from fabric_imitation.tools.bench import BenchTracker
 
     return BenchTracker(priors_dir=args.priors, out=args.out)
+
+
+def _add_bench_demos(p):
+    p.add_argument(
+        "--out",
+        type=Path,
+        default=Path("bench_demos.json"),
+        help="summary JSON; each case also goes to <out>.jsonl as it finishes "
+        "(a rerun resumes from it)",
+    )
+    p.add_argument("--workers", type=int, default=2)
+
+
+@command("bench demos")(_add_bench_demos)
+def _bench_demos(args) -> dict:
+    from fabric_imitation.tools.bench_demos import BenchDemos
+
+    return BenchDemos(out=args.out, workers=args.workers)
 
 
 def _add_report(p):
