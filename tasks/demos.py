@@ -143,7 +143,7 @@ def PlanActions(
 # object (CoverEdgeHeight: the cloth down the back is longer than the front
 # by that much) may be at most this fraction of the top's depth, whose
 # friction holds the cover (`fabric-imitate bench demos`).
-COVER_OVERHANG_OF_DEPTH = 2 / 3
+COVER_OVERHANG_OF_DEPTH = 0.45
 
 # Hanging, the object's top must be at least this far [m] above half the
 # cloth's length, or the towel's longer side reaches the table.

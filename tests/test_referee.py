@@ -190,9 +190,11 @@ def test_an_anchor_driven_into_the_box_stops_on_its_face_and_reports_contact():
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("task", ["box", "hang"])
+@pytest.mark.parametrize("task", ["box", "hang", "cylinder", "rail"])
 def test_the_scripted_demos_keep_the_referees_rules_without_collisions(task):
-    """At the nominal pose and a moved and turned one, on the shipped cloth."""
+    """At the nominal pose and a moved and turned one, on the shipped cloth
+    (`task`: the named scenario; cylinder is judged as a cover, rail as a
+    hang)."""
     from fabric_imitation.tools.evaluate import (
         ClothStarts,
         ProtocolPoses,
