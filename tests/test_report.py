@@ -184,6 +184,20 @@ def test_refuses_a_demo_fingerprint_that_differs_within_a_task(tmp_path):
     Report(runs=[a, _write(b, [other])], out=tmp_path / "ok.md")
 
 
+def test_a_scenario_text_variant_is_a_row_of_its_own(tmp_path):
+    """box with another object size (its own demo and scenario fingerprint)
+    is another row, named by the text, not a clash within box's row."""
+    variant = _trial(
+        "ours", 0, False, scenario_text="object: {size:  [0.1, 0.1, 0.05]}"
+    )
+    variant["fingerprint"]["demo"] = "d2"
+    variant["fingerprint"]["scenario"] = "s2"
+    runs = _write(tmp_path / "a.jsonl", [_trial("ours", 0, True), variant])
+    summary = Report(runs=[runs], out=tmp_path / "r.md")
+    rows = {r["scenario"]: r["successes"] for r in summary["tables"][0]["rows"]}
+    assert rows == {"box": 1, "box [object: {size: [0.1, 0.1, 0.05]}]": 0}
+
+
 def test_refuses_a_table_of_development_and_test_seeds(tmp_path):
     test = _trial("ours", 1, True)
     test["pose_seed"] = 1000

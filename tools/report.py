@@ -203,10 +203,19 @@ def _check_line(row, where: str) -> None:
             raise InputError(f"{where}: the fingerprint has no {name!r}")
 
 
+def ScenarioLabel(row: dict) -> str:
+    """The trial's scenario name, with its `--scenario-text` (whitespace
+    collapsed) in brackets where it has one: a variant of a named scenario
+    (another object size, say) is another task."""
+    text = " ".join(str(row.get("scenario_text") or "").split())
+    return f"{row['scenario']} [{text}]" if text else row["scenario"]
+
+
 def LoadTrials(runs: list[Path]) -> list[Trial]:
     """Every trial line of `runs`, checked (fields, fingerprints agree within
     a table and a row, no trial twice with different outcomes), the same
-    trial read twice kept once."""
+    trial read twice kept once. A trial run with `--scenario-text` is a row
+    of its own, named by the scenario and the text (`ScenarioLabel`)."""
     if not runs:
         raise InputError("no run files given")
     trials = []
@@ -224,7 +233,7 @@ def LoadTrials(runs: list[Path]) -> list[Trial]:
             except json.JSONDecodeError as e:
                 raise InputError(f"{where}: not JSON ({e.msg})") from None
             _check_line(row, where)
-            trials.append(Trial(where, row))
+            trials.append(Trial(where, {**row, "scenario": ScenarioLabel(row)}))
             count += 1
         if count == 0:
             raise InputError(f"{path}: no trials")
