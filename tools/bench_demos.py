@@ -33,8 +33,8 @@ MOVED_POSES = 2
 # Sizes near the scripted demos' geometric bounds (CheckDemoServes), inside
 # the ranges, that show where the served part of a range ends.
 NEAR_BOUNDS = {
-    "box": ([0.14, 0.09, 0.074], [0.20, 0.12, 0.087]),
-    "cylinder": ([0.09, 0.09, 0.074], [0.12, 0.12, 0.087]),
+    "box": ([0.14, 0.09, 0.075], [0.20, 0.12, 0.089]),
+    "cylinder": ([0.09, 0.09, 0.075], [0.12, 0.12, 0.089]),
     "plate": ([0.12, 0.01, 0.20], [0.24, 0.01, 0.20]),
     "rail": ([0.45, 0.02, 0.20],),
 }
