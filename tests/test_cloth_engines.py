@@ -365,28 +365,23 @@ def test_the_held_patches_turn_with_the_grasped_edge_where_set(turns):
     np.testing.assert_allclose(offsets, expected, atol=1e-6)
 
 
-def test_a_held_particle_carried_into_a_collider_lies_on_its_surface():
-    """The left gripper carries its corner 6 cm towards -y, 1 cm into a 10
-    cm box standing there (the held patch reaches past fingers that keep
-    clear of the object): the held particle lies on the box's near face
-    instead, and the right one, outside any box, follows its gripper."""
+def _carry_left_corner_into(collider) -> tuple[np.ndarray, np.ndarray]:
+    """One held step of a 4 x 4 sheet 5 cm up whose left gripper carries its
+    corner (0, 0) and the right one (0.12, 0) 6 cm towards -y, with
+    `collider` the only collider: the particles' positions and the
+    grippers' end positions (2, 3)."""
     from fabric_imitation.scenarios.schema import VbdConfig
-    from fabric_imitation.systems.cloth_simulator import (
-        StaticCollider,
-        _VbdEngine,
-    )
-    from pydrake.math import RigidTransform
+    from fabric_imitation.systems.cloth_simulator import _VbdEngine
 
     tris, rest = _sheet(4, 4, spacing=0.04)
     sheet = rest + [0.0, 0.0, 0.05]
     left, right = 0, 12  # (0, 0) and (0.12, 0), the edge y = 0
-    box = StaticCollider(RigidTransform([0.0, -0.1, 0.05]), (0.1, 0.1, 0.1), 0.3)
     engine = _VbdEngine(
         sheet_W=sheet,
         triangles=tris,
         grasped={"left": [left], "right": [right]},
         grippers_W0={"left": sheet[left], "right": sheet[right]},
-        colliders=[box],
+        colliders=[collider],
         settings=VbdConfig(),
         friction=0.3,
         time_step=0.01,
@@ -395,42 +390,35 @@ def test_a_held_particle_carried_into_a_collider_lies_on_its_surface():
     end = start + [0.0, -0.06, 0.0]
     x = np.r_[sheet.ravel(), np.zeros(sheet.size)]
     q, _ = engine.step(x, start.ravel(), end.ravel(), held=True)
-    np.testing.assert_allclose(q[left], [0.0, -0.05, 0.05], atol=1e-9)
-    np.testing.assert_allclose(q[right], end[1], atol=1e-9)
+    return q[[left, right]], end
+
+
+def test_a_held_particle_carried_into_a_collider_lies_on_its_surface():
+    """The left gripper carries its corner 6 cm towards -y, 1 cm into a 10
+    cm box standing there (the held patch reaches past fingers that keep
+    clear of the object): the held particle lies on the box's near face
+    instead, and the right one, outside any box, follows its gripper."""
+    from fabric_imitation.systems.cloth_simulator import StaticCollider
+    from pydrake.math import RigidTransform
+
+    box = StaticCollider(RigidTransform([0.0, -0.1, 0.05]), (0.1, 0.1, 0.1), 0.3)
+    q, end = _carry_left_corner_into(box)
+    np.testing.assert_allclose(q[0], [0.0, -0.05, 0.05], atol=1e-9)
+    np.testing.assert_allclose(q[1], end[1], atol=1e-9)
 
 
 def test_a_held_particle_carried_into_a_cylinder_lies_on_its_side():
     """As above with a can 10 cm across standing 2 cm to the right of the
     box's place: the held particle carried 4.5 mm inside it goes out
     radially onto its side, not along an axis as a box's would."""
-    from fabric_imitation.scenarios.schema import VbdConfig
-    from fabric_imitation.systems.cloth_simulator import (
-        StaticCollider,
-        _VbdEngine,
-    )
+    from fabric_imitation.systems.cloth_simulator import StaticCollider
     from pydrake.math import RigidTransform
 
-    tris, rest = _sheet(4, 4, spacing=0.04)
-    sheet = rest + [0.0, 0.0, 0.05]
-    left, right = 0, 12
     centre = np.array([0.02, -0.1, 0.05])
     can = StaticCollider(RigidTransform(centre), (0.1, 0.1, 0.1), 0.3, shape="cylinder")
-    engine = _VbdEngine(
-        sheet_W=sheet,
-        triangles=tris,
-        grasped={"left": [left], "right": [right]},
-        grippers_W0={"left": sheet[left], "right": sheet[right]},
-        colliders=[can],
-        settings=VbdConfig(),
-        friction=0.3,
-        time_step=0.01,
-    )
-    start = np.stack([sheet[left], sheet[right]])
-    end = start + [0.0, -0.06, 0.0]
-    x = np.r_[sheet.ravel(), np.zeros(sheet.size)]
-    q, _ = engine.step(x, start.ravel(), end.ravel(), held=True)
+    q, end = _carry_left_corner_into(can)
     radial = end[0] - centre
     radial[2] = 0.0
     expected = centre + radial * 0.05 / np.linalg.norm(radial)
     expected[2] = end[0][2]
-    np.testing.assert_allclose(q[left], expected, atol=1e-6)
+    np.testing.assert_allclose(q[0], expected, atol=1e-6)

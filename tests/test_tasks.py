@@ -64,24 +64,26 @@ def test_a_size_the_scripted_demo_cannot_serve_is_refused_with_its_bound(
     assert "\n" not in str(e.value)
 
 
-def test_a_size_the_scripted_demo_cannot_serve_exits_2_with_one_line(tmp_path):
-    out = tmp_path / "demo"
-    done = subprocess.run(
-        [
-            sys.executable,
-            "-m",
-            "fabric_imitation.tools.cli",
-            "demo",
-            "record",
-            "--scenario",
-            "hang",
-            "--scenario-text",
-            "object: {size: [0.17, 0.01, 0.12]}",
-            "--out",
-            str(out),
-        ],
+def _demo_record(*args: str) -> subprocess.CompletedProcess:
+    """`fabric-imitate demo record ARGS` in a subprocess (exit code and
+    stderr as a user sees them)."""
+    return subprocess.run(
+        [sys.executable, "-m", "fabric_imitation.tools.cli", "demo", "record", *args],
         capture_output=True,
         text=True,
+        timeout=120,
+    )
+
+
+def test_a_size_the_scripted_demo_cannot_serve_exits_2_with_one_line(tmp_path):
+    out = tmp_path / "demo"
+    done = _demo_record(
+        "--scenario",
+        "hang",
+        "--scenario-text",
+        "object: {size: [0.17, 0.01, 0.12]}",
+        "--out",
+        str(out),
     )
     assert done.returncode == 2
     lines = done.stderr.strip().splitlines()
@@ -199,25 +201,8 @@ def test_demo_record_writes_an_observation_only_demo(tmp_path):
 
 def test_demo_record_rejects_an_object_pose_outside_the_workspace(tmp_path):
     out = tmp_path / "demo"
-    result = subprocess.run(
-        [
-            sys.executable,
-            "-m",
-            "fabric_imitation.tools.cli",
-            "demo",
-            "record",
-            "--scenario",
-            "box",
-            "--out",
-            str(out),
-            "--object-pose",
-            "0.9",
-            "0",
-            "0",
-        ],
-        capture_output=True,
-        text=True,
-        timeout=120,
+    result = _demo_record(
+        "--scenario", "box", "--out", str(out), "--object-pose", "0.9", "0", "0"
     )
     assert result.returncode == 2
     assert "outside the workspace" in result.stderr
