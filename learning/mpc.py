@@ -89,6 +89,12 @@ class MpcConfig:
     # the exact inverse for the two keypoints the grippers hold, which does
     # not depend on f_R's estimates of the rest of the cloth).
     prior: str = "inverse"
+    # Carry the noise distribution (mu, Sigma) from one control step to the
+    # next, shifted by one step (the last repeated), as the paper's
+    # Algorithm 1 keeps it across its outer loop; false: every step starts
+    # from (0, sigma0^2). A carried distribution under which no sampled
+    # sequence is feasible is replaced by (0, sigma0^2) in the same step.
+    warm_start: bool = False
 
     def __post_init__(self):
         if self.num_samples < 1 or self.horizon < 1:
@@ -129,6 +135,9 @@ class MpcResult:
     blocked_by: dict[str, int] | None = None
     # Solved with rule 2 as written: no sequence kept the estimate margin.
     margin_dropped: bool = False
+    # The noise distribution (mu, variance), each (h, 6), after the last
+    # iteration (what `solve(noise=...)` takes at the next step).
+    noise: tuple[torch.Tensor, torch.Tensor] | None = None
 
 
 class Mpc:
@@ -325,6 +334,7 @@ class Mpc:
         previous_progress: int | None = None,
         frame_pose=None,
         cloth_on_object: bool = False,
+        noise=None,
     ) -> MpcResult:
         """One control step from state S (M, 3) (see `_solve_once`). Where
         no sampled sequence keeps rule 2's margin for estimates
@@ -336,6 +346,7 @@ class Mpc:
             previous_progress=previous_progress,
             frame_pose=frame_pose,
             cloth_on_object=cloth_on_object,
+            noise=noise,
         )
         result = self._solve_once(S, **kwargs)
         margin = self.ctx.direction_margin_deg
@@ -361,6 +372,7 @@ class Mpc:
         previous_progress: int | None = None,
         frame_pose=None,
         cloth_on_object: bool = False,
+        noise=None,
     ) -> MpcResult:
         """One control step from state S (M, 3).
 
@@ -371,7 +383,9 @@ class Mpc:
         `frame_pose` ([x, y, yaw]) is the object's pose now, where the
         workspace rule's world box is checked (default: the one given at
         construction). `cloth_on_object`: the cloth was seen on the object
-        in an earlier step (SafetyContext.cloth_on_object).
+        in an earlier step (SafetyContext.cloth_on_object). `noise`: the
+        previous step's final (mu, variance) (`MpcResult.noise`), used with
+        `warm_start`, shifted by one step; None: start from (0, sigma0^2).
         """
         cfg = self.config
         t0 = time.perf_counter()
@@ -402,6 +416,12 @@ class Mpc:
             )
         mu = torch.zeros(cfg.horizon, 6)
         var = torch.full((cfg.horizon, 6), cfg.sigma0**2)
+        carried = cfg.warm_start and noise is not None
+        if carried:
+            mu, var = (
+                torch.cat([x[1:], x[-1:]]).to(torch.float32)
+                for x in (torch.as_tensor(noise[0]), torch.as_tensor(noise[1]))
+            )
         best_r, best_a = -float("inf"), None
         iterations, converged = 0, False
         iteration_seconds = []
@@ -428,6 +448,11 @@ class Mpc:
                 mu = (1 - cfg.beta) * mu + cfg.beta * elite.mean(0)
                 var = (1 - cfg.beta) * var + cfg.beta * elite.var(0, unbiased=False)
                 converged = bool(var.sqrt().max() < cfg.tau_conv)
+            elif carried:
+                # Nothing feasible under the carried distribution: start over.
+                mu = torch.zeros(cfg.horizon, 6)
+                var = torch.full((cfg.horizon, 6), cfg.sigma0**2)
+                carried = False
             iteration_seconds.append(time.perf_counter() - t_iteration)
             if converged:
                 break
@@ -449,4 +474,5 @@ class Mpc:
             converged=converged,
             iteration_seconds=iteration_seconds,
             blocked_by=None if feasible else self.blocking_rules(S, X),
+            noise=(mu, var),
         )

@@ -314,6 +314,7 @@ class StepController(LeafSystem):
         step_cap: int,
         retreat_steps: int = 3,
         retreat_step: float = 0.03,
+        memory_size: int = 1,
     ):
         super().__init__()
         self._retreat = (retreat_steps, retreat_step)
@@ -335,7 +336,8 @@ class StepController(LeafSystem):
                 ("solve_ms", 1),
                 ("iterations", 1),
                 ("retreated", 1),  # lifting steps taken after the release
-                ("memory", 1),  # a subclass's own (ZeroController, MpcController)
+                # a subclass's own (ZeroController, MpcController)
+                ("memory", memory_size),
             )
         }
         self.DeclarePeriodicDiscreteUpdateEvent(period, offset, self._update)
@@ -416,7 +418,11 @@ class MpcController(StepController):
     step."""
 
     def __init__(self, *, mpc, seed: int = 0, **kwargs):
-        super().__init__(**kwargs)
+        # memory: [cloth seen on the object, mu (h x 6), variance (h x 6)]:
+        # the noise distribution carried to the next step (mpc.warm_start);
+        # a zero variance means none carried.
+        self._h = mpc.config.horizon
+        super().__init__(memory_size=1 + 12 * self._h, **kwargs)
         self._mpc = mpc
         self._seed = seed
 
@@ -427,9 +433,10 @@ class MpcController(StepController):
         # Once seen on the object, the cloth is taken to stay there (the
         # ``memory`` state): a towel over the plate seen from the front may
         # show no keypoint on it (SafetyContext.cloth_on_object).
-        on_object = bool(self._get(context, "memory")[0]) or cloth_on_object(
-            S, self._mpc.ctx
-        )
+        memory = self._get(context, "memory")
+        on_object = bool(memory[0]) or cloth_on_object(S, self._mpc.ctx)
+        mu, var = memory[1:].reshape(2, self._h, 6)
+        noise = (mu, var) if var.any() else None
         result = self._mpc.solve(
             S,
             step=steps,
@@ -437,6 +444,7 @@ class MpcController(StepController):
             previous_progress=progress,
             frame_pose=pose,
             cloth_on_object=on_object,
+            noise=noise,
         )
         if not result.feasible:
             _LOG.warning(
@@ -458,7 +466,10 @@ class MpcController(StepController):
             result.action.numpy(),
             result.progress,
             result.iterations,
-            float(on_object),
+            np.concatenate(
+                [[float(on_object)]]
+                + [np.ravel(x) for x in result.noise or (np.zeros(12 * self._h),)]
+            ),
         )
 
 
