@@ -384,6 +384,7 @@ CONTROLLER_LOGS = (
     "progress",
     "solve_ms",
     "iterations",
+    "converged",
 )
 
 

@@ -285,7 +285,7 @@ class StepController(LeafSystem):
 
     Subclasses implement `Finished(S, steps)` (a termination code or None,
     checked before the step cap) and `Decide(context, S, pose, steps,
-    progress) -> (code, action_O or None, progress, iterations[, memory])`:
+    progress) -> (code, action_O or None, progress, iterations[, states])`:
     a termination code
     (RUNNING to act), the move in the object frame, the demo step matched
     and the iterations spent. At the step cap the episode ends. After the
@@ -302,7 +302,8 @@ class StepController(LeafSystem):
     ``action`` (6, world-frame relative moves [a_L, a_R]), ``release`` (1),
     ``termination`` (1, one of TERMINATION_NAMES' codes), ``steps`` (1,
     actions taken), ``progress`` (1, the demo step J the state matched),
-    ``solve_ms`` (1), ``iterations`` (1), ``retreated`` (1).
+    ``solve_ms`` (1), ``iterations`` (1), ``converged`` (1: the step met the
+    paper's convergence test), ``retreated`` (1).
     """
 
     def __init__(
@@ -335,6 +336,8 @@ class StepController(LeafSystem):
                 ("progress", 1),
                 ("solve_ms", 1),
                 ("iterations", 1),
+                # 1 where the step met the paper's convergence test (MPC)
+                ("converged", 1),
                 ("retreated", 1),  # lifting steps taken after the release
                 # a subclass's own (ZeroController, MpcController)
                 ("memory", memory_size),
@@ -392,11 +395,11 @@ class StepController(LeafSystem):
         if code is None and steps >= self._cap:
             code = TERMINATED_STEP_CAP
         if code is None:
-            code, action_O, progress, iterations, *memory = self.Decide(
+            code, action_O, progress, iterations, *states = self.Decide(
                 context, S, pose, steps, progress
             )
-            if memory:
-                put("memory", memory[0])
+            for name, value in (states[0] if states else {}).items():
+                put(name, value)
             if code == RUNNING:
                 action_W = pose.vector_to_world(np.reshape(action_O, (2, 3))).ravel()
                 steps += 1
@@ -454,7 +457,13 @@ class MpcController(StepController):
                 self._mpc.config.num_samples,
                 result.blocked_by,
             )
-            return TERMINATED_INFEASIBLE, None, result.progress, result.iterations
+            return (
+                TERMINATED_INFEASIBLE,
+                None,
+                result.progress,
+                result.iterations,
+                {"converged": 0.0},
+            )
         if result.margin_dropped:
             _LOG.info(
                 "step %d: no action kept rule 2's estimate margin; solved with "
@@ -466,10 +475,13 @@ class MpcController(StepController):
             result.action.numpy(),
             result.progress,
             result.iterations,
-            np.concatenate(
-                [[float(on_object)]]
-                + [np.ravel(x) for x in result.noise or (np.zeros(12 * self._h),)]
-            ),
+            {
+                "memory": np.concatenate(
+                    [[float(on_object)]]
+                    + [np.ravel(x) for x in result.noise or (np.zeros(12 * self._h),)]
+                ),
+                "converged": float(result.converged),
+            },
         )
 
 
@@ -524,8 +536,8 @@ class ZeroController(StepController):
         step = self._follower.decide(S, progress, tries, np.array(pose))
         if step.action is None:
             code = TERMINATED_STEP_CAP if step.gave_up else TERMINATED_CLASSIFIER
-            return code, None, step.subgoal, 0, 0
-        return RUNNING, step.action.numpy(), step.subgoal, 0, step.tries
+            return code, None, step.subgoal, 0, {"memory": 0}
+        return RUNNING, step.action.numpy(), step.subgoal, 0, {"memory": step.tries}
 
 
 class CfmController(StepController):

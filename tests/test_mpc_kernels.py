@@ -2,6 +2,7 @@
 compiled polygon IoU, the rules and rewards batched over every horizon
 step, f_D/f_I with their normalisers folded in."""
 
+import dataclasses as dc
 import math
 from pathlib import Path
 
@@ -184,6 +185,48 @@ def test_batched_rollout_matches_the_step_by_step_reference():
     assert mpc.blocking_rules(S, X) == {k: int(b.sum()) for k, b in broken.items()}
 
 
+def _warm(mpc, **config):
+    mpc.config = dc.replace(mpc.config, warm_start=True, **config)
+    return mpc
+
+
+def test_a_carried_distribution_starts_the_next_step_shifted_by_one():
+    mpc = _warm(make_mpc(), max_iterations=1, beta=1e-6)
+    S = torch.as_tensor(cloth(0.05, z=0.02))
+    mu = torch.zeros(4, 6)
+    mu[:, [1, 4]] = -0.001 * torch.arange(4.0)[:, None]  # step k: pull by k mm
+    var = torch.full((4, 6), 1e-6)
+    result = mpc.solve(S, noise=(mu, var))
+    assert result.feasible
+    shifted = torch.cat([mu[1:], mu[-1:]])
+    assert torch.allclose(result.noise[0], shifted, atol=1e-7)
+    # Without warm_start the same call starts from (0, sigma0^2).
+    mpc.config = dc.replace(mpc.config, warm_start=False)
+    cold = mpc.solve(S, noise=(mu, var))
+    assert float(cold.noise[0].abs().max()) < 1e-7
+    assert float(cold.noise[1].min()) > 0.5 * mpc.config.sigma0**2
+
+
+def test_a_converged_carried_distribution_converges_at_once():
+    mpc = _warm(make_mpc(), max_iterations=30)
+    S = torch.as_tensor(cloth(0.05, z=0.02))
+    first = mpc.solve(S)  # from (0, sigma0^2): many iterations
+    assert first.converged and first.iterations > 3
+    again = mpc.solve(S, noise=first.noise)
+    assert again.converged and again.iterations == 1
+
+
+def test_a_carried_distribution_with_nothing_feasible_starts_over():
+    mpc = _warm(make_mpc(), max_iterations=30)
+    S = torch.as_tensor(cloth(0.05, z=0.02))
+    # Both grippers 10 cm along +x, +y, +z at every step: every sample
+    # breaks a rule (the direction rule).
+    mu, var = torch.full((4, 6), 0.1), torch.full((4, 6), 1e-8)
+    result = mpc.solve(S, noise=(mu, var))
+    assert result.feasible and result.converged
+    assert float(result.action.abs().max()) < mpc.safety.max_step
+
+
 def test_folded_priors_match_the_normalised_networks():
     import fabric_imitation.learning as learning
     from fabric_imitation.learning.geometry import (
@@ -277,10 +320,12 @@ def test_the_same_seed_gives_the_same_actions_idle_and_under_load():
     starts = [states[k] + rng.normal(0, 0.002, states[k].shape) for k in range(10)]
 
     def actions():
-        return [
-            mpc.solve(torch.as_tensor(S, dtype=torch.float32), step=k, seed=3)
-            for k, S in enumerate(starts)
-        ]
+        results, noise = [], None
+        for k, S in enumerate(starts):
+            S = torch.as_tensor(S, dtype=torch.float32)
+            results.append(mpc.solve(S, step=k, seed=3, noise=noise))
+            noise = results[-1].noise  # carried as MpcController does
+        return results
 
     idle = actions()
     with OneCoreBusy():

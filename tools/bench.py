@@ -420,6 +420,7 @@ MPC_SCENARIOS = ("box", "hang", "box_big")
 def BenchMpc(
     *,
     scenario_names=MPC_SCENARIOS,
+    policy=None,
     priors_dir: Path | None = None,
     demo_dir: Path | None = None,
     steps: int = 40,
@@ -439,7 +440,8 @@ def BenchMpc(
     solve) the first time on this machine (an empty cache: the IoU kernel
     built, f_A trained) and when the same demo and priors were prepared
     before. `threads`: torch threads (default: what the main job picks,
-    `TorchThreads()`)."""
+    `TorchThreads()`). `policy`: the method's settings (default: the
+    priors' policy file)."""
     import tempfile
 
     import torch
@@ -451,7 +453,8 @@ def BenchMpc(
     if steps < 1:
         raise InputError(f"steps must be at least 1, got {steps}")
     for name in scenario_names:
-        LoadScenario(scenario_name=name)  # an unknown name fails here, at once
+        # an unknown name fails here, at once
+        LoadScenario(scenario_name=name, policy=policy)
     torch.set_num_threads(threads or TorchThreads())
     scenarios = {}
     for name in scenario_names:
@@ -463,10 +466,10 @@ def BenchMpc(
             polygon_kernel.forget()
             try:
                 first, _, _ = _PreparedMpc(
-                    name, priors_dir, demo_dir, num_samples, horizon
+                    name, priors_dir, demo_dir, num_samples, horizon, policy
                 )
                 again, mpc, states = _PreparedMpc(
-                    name, priors_dir, demo_dir, num_samples, horizon
+                    name, priors_dir, demo_dir, num_samples, horizon, policy
                 )
             finally:
                 if saved is None:
@@ -500,7 +503,7 @@ def BenchMpc(
     return result
 
 
-def _PreparedMpc(name, priors_dir, demo_dir, num_samples, horizon):
+def _PreparedMpc(name, priors_dir, demo_dir, num_samples, horizon, policy=None):
     """(seconds from loading the demo to the first action, the Mpc, the
     demo's states) for scenario `name`'s shipped demo (or `demo_dir`)."""
     import torch
@@ -508,7 +511,7 @@ def _PreparedMpc(name, priors_dir, demo_dir, num_samples, horizon):
     from fabric_imitation.learning.mpc import Mpc
     from fabric_imitation.tasks.referee import TaskSafetyContext
 
-    scenario = LoadScenario(scenario_name=name)
+    scenario = LoadScenario(scenario_name=name, policy=policy)
     t0 = time.perf_counter()
     prepared = PrepareImitation(
         scenario,
@@ -526,22 +529,34 @@ def _PreparedMpc(name, priors_dir, demo_dir, num_samples, horizon):
     return round(time.perf_counter() - t0, 2), mpc, prepared.demo_states
 
 
+# [m] noise added to each keypoint of the demo's states that `bench mpc`
+# solves from: about f_R's error on visible corners (4.5 mm held out), small
+# enough that every start has a feasible action, as the steps of an episode
+# have (an episode ends at the first step without one).
+BENCH_STATE_NOISE = 0.003
+
+
 def _TimeMpcSteps(mpc, states, steps: int) -> dict:
-    """`steps` solves from the demo's states with 1 cm of noise, idle and
-    with one core busy."""
+    """`steps` solves, one after another as in an episode, from the demo's
+    states (in order) with BENCH_STATE_NOISE of noise, idle and with one core
+    busy. With `mpc.warm_start`, each step starts from the previous one's
+    noise distribution, as MpcController carries it."""
     import torch
 
     rng = np.random.default_rng(0)
     perturbed = [
-        states[k % len(states)] + rng.normal(0, 0.01, states[0].shape)
+        states[k % len(states)] + rng.normal(0, BENCH_STATE_NOISE, states[0].shape)
         for k in range(steps)
     ]
 
     def measure():
-        results = [
-            mpc.solve(torch.as_tensor(S, dtype=torch.float32), step=k)
-            for k, S in enumerate(perturbed)
-        ]
+        results, noise = [], None
+        for k, S in enumerate(perturbed):
+            result = mpc.solve(
+                torch.as_tensor(S, dtype=torch.float32), step=k, noise=noise
+            )
+            noise = result.noise if result.feasible else None
+            results.append(result)
         step_ms = [1000 * r.seconds for r in results]
         iteration_ms = [1000 * t for r in results for t in r.iteration_seconds]
         iterations = [r.iterations for r in results]
@@ -571,6 +586,8 @@ def _TimeMpcSteps(mpc, states, steps: int) -> dict:
     return {
         "max_iterations": mpc.config.max_iterations,
         "tau_conv": mpc.config.tau_conv,
+        "warm_start": mpc.config.warm_start,
+        "state_noise_m": BENCH_STATE_NOISE,
         "idle": idle,
         "one_core_loaded": loaded,
         "actions_changed_under_load": changed,

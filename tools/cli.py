@@ -721,14 +721,19 @@ def _add_bench_mpc(p):
     p.add_argument("--demo", type=Path, default=None, help="with one scenario")
     p.add_argument("--steps", type=int, default=40, help="control steps timed")
     p.add_argument("--out", type=Path, default=None, help="also write the JSON here")
+    _policy_flags(p)
 
 
 @command("bench mpc")(_add_bench_mpc)
 def _bench_mpc(args) -> dict:
+    from fabric_imitation.scenarios.policy import LoadPolicy
     from fabric_imitation.tools.bench import MPC_SCENARIOS, BenchMpc
 
     return BenchMpc(
         scenario_names=args.scenarios or MPC_SCENARIOS,
+        policy=LoadPolicy(
+            priors_dir=args.priors, filename=args.policy, policy_text=args.policy_text
+        ),
         priors_dir=args.priors,
         demo_dir=args.demo,
         steps=args.steps,

@@ -355,6 +355,17 @@ def ScoreEpisode(
         "rule_breaks_estimated": estimated,
         "executed_violations": estimated["any"],
         "mpc_step_ms": {"p50": percentile(50), "p95": percentile(95)},
+        # Sampling iterations of the decided steps and the fraction of them
+        # that met the paper's convergence test (MPC methods; else 0).
+        "mpc_iterations": {
+            "mean": round(float(logs["iterations"][solved, 0].mean()), 2),
+            "max": int(logs["iterations"][solved, 0].max()),
+        }
+        if len(solved)
+        else None,
+        "mpc_converged_fraction": round(float(logs["converged"][solved, 0].mean()), 3)
+        if len(solved) and "converged" in logs
+        else None,
         "error": run.error,
     }
     if tr.true_before is not None:
