@@ -348,7 +348,8 @@ class StepController(LeafSystem):
             self.DeclareStateOutputPort(name, index)
 
     def _get(self, context, name: str) -> np.ndarray:
-        return context.get_discrete_state(self._state[name]).value()
+        # A copy: the context's vector is overwritten by later updates.
+        return context.get_discrete_state(self._state[name]).value().copy()
 
     def _halted(self, context) -> int | None:
         """The referee's termination code, if it has halted the episode."""

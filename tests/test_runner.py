@@ -60,6 +60,8 @@ def crafted_run(pose, actions_O, true_after_shift):
             ("termination", 1),
             ("steps", 1),
             ("solve_ms", 1),
+            ("iterations", 1),
+            ("converged", 1),
         )
     }
     for k in range(rows):
@@ -70,6 +72,8 @@ def crafted_run(pose, actions_O, true_after_shift):
             logs["steps"][k] = min(k, n)
             logs["termination"][k] = RUNNING if k <= n else TERMINATED_CLASSIFIER
             logs["solve_ms"][k] = 50.0 + k
+            logs["iterations"][k] = k
+            logs["converged"][k] = k % 2
         if 1 <= k <= n:
             a_W = PlanarPose(*pose).vector_to_world(actions_O[k - 1].reshape(2, 3))
             logs["action"][k] = a_W.ravel()
@@ -126,6 +130,9 @@ def test_an_executed_action_that_breaks_the_workspace_rule_is_counted(box):
     assert summary["steps"] == 2
     assert summary["termination"] == "classifier"
     assert summary["mpc_step_ms"]["p50"] == pytest.approx(51.5)
+    # Iterations and the convergence test of the two decided steps (rows 1, 2).
+    assert summary["mpc_iterations"] == {"mean": 1.5, "max": 2}
+    assert summary["mpc_converged_fraction"] == 0.5
 
 
 def test_scoring_uses_the_logged_object_pose(box):
@@ -178,7 +185,8 @@ class FixedMpc:
         self.frames = []
         self.on_object = []
         self.done = done
-        self.config = types.SimpleNamespace(num_samples=1)
+        self.config = types.SimpleNamespace(num_samples=1, horizon=2)
+        self.noises = []
         self.ctx = ctx or SafetyContext(
             edge_length=0.3,
             workspace_lower=np.array([-0.45, -0.45, -0.01]),
@@ -197,10 +205,14 @@ class FixedMpc:
         previous_progress,
         frame_pose=None,
         cloth_on_object=False,
+        noise=None,
     ):
         self.frames.append(np.array(frame_pose))
         self.on_object.append(cloth_on_object)
-        return MpcResult(self.action, True, 3, 1.0, 7, 0.01)
+        self.noises.append(noise)
+        # A distinct noise distribution per step (mu = step, variance 0.5).
+        carried = (torch.full((2, 6), float(step)), torch.full((2, 6), 0.5))
+        return MpcResult(self.action, True, 3, 1.0, 7, 0.01, noise=carried)
 
 
 def _controller(mpc, yaw):
@@ -269,6 +281,21 @@ def test_mpc_controller_remembers_the_cloth_seen_on_the_object():
         simulator.Initialize()
         simulator.AdvanceTo(0.5 * DT)
         assert mpc.on_object == [*expected, False]
+
+
+def test_mpc_controller_carries_the_noise_distribution_to_the_next_step():
+    """The MPC's (mu, variance) after a step is handed to the next step's
+    solve (mpc.warm_start); the first step of an episode gets none."""
+    mpc = FixedMpc(np.zeros(6))
+    dut, context = _controller(mpc, 0.0)
+    simulator = Simulator(dut, context)
+    simulator.AdvanceTo(2.5 * DT)
+    assert mpc.noises[0] is None
+    for step, noise in enumerate(mpc.noises[1:]):
+        mu, var = noise
+        np.testing.assert_array_equal(mu, np.full((2, 6), step))
+        np.testing.assert_array_equal(var, np.full((2, 6), 0.5))
+    assert len(mpc.noises) == 3
 
 
 def test_mpc_controller_stops_releases_and_lifts_the_grippers_clear():
