@@ -51,9 +51,10 @@ def _cover_waypoints(scenario: Scenario, start: np.ndarray) -> list[np.ndarray]:
 
 # How far [m] in front of the object's front face the cover lowers the
 # grasped edge. The cloth settles back towards the longer part down the
-# back after the release; at 3.5 cm the named can's top was left 0.968
-# covered and box_big's 0.946 (the threshold is 0.9), at 5.5 cm 0.997 and
-# 1.0 (the box's 1.0 at both; `ScriptedTrial` at the nominal pose).
+# back after the release: the shipped demos (recorded with this value)
+# leave the top covered 1.0 (box, box_big) and 0.997 (cylinder), where
+# the threshold is 0.9. Imitating them against demos lowered 3.5 cm in
+# front: docs/development.md, "The scripted cover demo".
 COVER_FRONT = 0.055
 
 

@@ -116,8 +116,10 @@ def test_vbd_cloth_drapes_over_the_box_within_3_cm_and_fem_stands_out_further(
     # the box (2.8 cm then).
     assert reach["vbd"] <= 0.045, reach
     assert reach["vbd"] < reach["fem"] - 0.01, reach
-    # Off the back corners the vbd flaps hang within 1.5 cm of the box.
-    assert max(sides["vbd"]) <= 0.015, sides
+    # Off the middle of the sides the vbd flaps hang within 2 cm of the box
+    # (1.7 cm left / right, 1.8 cm front / back: the edge is lowered 5.5 cm
+    # in front of the box, so the front flap stands out a little).
+    assert max(sides["vbd"]) <= 0.02, sides
 
 
 @pytest.mark.parametrize(
