@@ -38,12 +38,6 @@ class RewardConfig:
     w_n: float = 50.0
     # Termination: IoU with the last demo state above this, and J = T - 1.
     tau_i: float = 0.75
-    # ... and each grasped corner (measured by the robot) within this
-    # distance [m] of the demo's last state's, in 3-D. Seen from above, a
-    # cloth released with one gripper still up by the object's top can
-    # match the demo's last polygon (IoU and J) while its edge is not yet
-    # where the demo let go. .inf: the paper's classifier.
-    done_grasp_distance: float = math.inf
     # Progress score = IoU - this [1/m] x mean 3-D keypoint distance. The
     # paper's top-down IoU alone cannot tell a cloth lifted or lowered in place
     # from one at another height (the hang demo lowers 32 cm straight down), so
@@ -92,7 +86,6 @@ class RewardConfig:
             "demo_grasp_max_spread_px",
             "demo_grasp_max_jump",
             "demo_grasp_max_deviation",
-            "done_grasp_distance",
         ):
             if not getattr(self, name) > 0:
                 raise ValueError(
@@ -317,18 +310,11 @@ class DemoModel:
 
     @torch.no_grad()
     def done(self, S: torch.Tensor) -> torch.Tensor:
-        """Termination classifier: IoU with S_E^T above tau_I and J = T - 1
-        (and the grasped corners near S_E^T's, where done_grasp_distance is
-        finite)."""
+        """Termination classifier: IoU with S_E^T above tau_I and J = T - 1."""
         S = torch.as_tensor(S, dtype=torch.float32)
         J, _ = self.progress(S)
         last_iou = self.similarity(S, (self.T - 1, self.T))[..., 0]
-        done = (last_iou > self.config.tau_i) & (J == self.T - 1)
-        if math.isfinite(self.config.done_grasp_distance):
-            g = self.grasped
-            d = (S[..., g, :] - self.states[-1][g]).norm(dim=-1).amax(-1)
-            done = done & (d <= self.config.done_grasp_distance)
-        return done
+        return (last_iou > self.config.tau_i) & (J == self.T - 1)
 
 
 # f_A's training inputs besides the states (RewardConfig fields).

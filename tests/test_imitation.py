@@ -20,7 +20,7 @@ from fabric_imitation.learning.safety import (
     rule_violations,
     valid_actions,
 )
-from fabric_imitation.learning.state import corner_indices, world_to_object
+from fabric_imitation.learning.state import world_to_object
 from fabric_imitation.systems.imitation import DemoReward, KeypointEstimator
 from pydrake.math import RigidTransform, RotationMatrix
 from pydrake.systems.sensors import ImageDepth32F, ImageGrey8U
@@ -135,24 +135,6 @@ def test_reward_and_termination_on_hand_made_states():
     assert bool(model.done(torch.as_tensor(states[-1])))
     assert not bool(model.done(torch.as_tensor(states[-2])))
     assert not bool(model.done(past + torch.tensor([0.0, -0.05, 0.0])))
-
-
-def test_termination_can_also_ask_for_the_grasped_corners_at_the_demos_end():
-    """reward.done_grasp_distance: the last state with one grasped corner
-    lifted 6 cm still matches the demo's last polygon from above, so the
-    paper's classifier fires; with the corners required within 4 cm of the
-    demo's last ones it does not, and does again with them 3 cm off."""
-    states = pulled_demo()
-    lifted = torch.as_tensor(states[-1]).clone()
-    s1 = corner_indices(8)["s1"]
-    lifted[s1, 2] += 0.06
-    assert bool(demo_model(states).done(lifted))
-    near = demo_model(states, done_grasp_distance=0.04)
-    assert not bool(near.done(lifted))
-    lifted[s1, 2] -= 0.03
-    assert bool(near.done(lifted))
-    with pytest.raises(ValueError, match="reward.done_grasp_distance"):
-        RewardConfig(done_grasp_distance=0.0)
 
 
 def test_d_p_grasp_term_on_hand_made_states():
