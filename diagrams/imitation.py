@@ -33,9 +33,7 @@ from fabric_imitation.diagrams.station import (
 from fabric_imitation.learning.demo_io import Demo, LoadDemo
 from fabric_imitation.learning.demo_learning import (
     DemoModel,
-    RewardConfig,
     learn_from_demo,
-    track_grasped_corners,
 )
 from fabric_imitation.learning.errors import InputError
 from fabric_imitation.learning.geometry import PinholeCamera
@@ -84,18 +82,15 @@ EVENT_STAGGER = 1e-3  # [s]
 def DemoStates(
     priors: Priors,
     demo: Demo,
-    config: RewardConfig | None = None,
     tracker: KeypointTracker | None = None,
 ) -> np.ndarray:
-    """S_E^1..T: f_R on every demo frame, in the demo's object frame, with
-    the grasped corners tracked through the frames (track_grasped_corners;
-    `config`: the scenario's reward settings). With a `tracker` (object
-    frame), the states are tracked as the imitation's are, the demo's
-    grasped corners standing in for the grippers the video does not
-    measure, so demo and imitation states come from the same estimator."""
+    """S_E^1..T: f_R on every demo frame, in the demo's object frame. With a
+    `tracker` (object frame), the states are tracked as the imitation's are,
+    the demo's grasped corners standing in for the grippers the video does
+    not measure, so demo and imitation states come from the same
+    estimator."""
     p_W, spread = priors.keypoints_and_spread(demo.mask, demo.depth)
     states = world_to_object(p_W, demo.object_pose)
-    states = track_grasped_corners(states, spread, config or RewardConfig())
     if tracker is None:
         return states
     idx = corner_indices(priors.num_keypoints)
@@ -176,7 +171,7 @@ def PrepareImitation(
         )
     if priors.prior_states is None:
         raise InputError(f"priors {priors_dir} carry no prior states for f_A")
-    states = DemoStates(priors, demo, scenario.reward, _Tracker(scenario, priors))
+    states = DemoStates(priors, demo, _Tracker(scenario, priors))
     model, info = learn_from_demo(states, priors.prior_states, scenario.reward)
     safety = scenario.safety.for_demo(states)
     info = {**info, "tau_d_deg": round(safety.tau_d_deg, 2)}

@@ -332,7 +332,7 @@ class TcnMpc(Mpc):
     def _aligned(self, i) -> torch.Tensor:
         return self.demo.states[min(self._step + i + 1, self.demo.T - 1)]
 
-    def current_progress(self, S, step, previous_progress):
+    def current_progress(self, S, step):
         self._step = step
         return min(step, self.demo.T - 1)
 

@@ -29,11 +29,6 @@ class RewardConfig:
     w_p: float = 50.0
     # Weight of rotation [rad] against translation [m] inside D_P.
     w_r: float = 0.1
-    # Weight of the grasped corners' distance to the subgoal's inside D_P
-    # (the corners are measured by the robot now, estimated by f_R in the
-    # demo): seen from above, a cloth hanging under the grippers hides its
-    # other keypoints. 0 gives the paper's D_P.
-    w_grasp: float = 0.0
     # Weight of the negative (overshoot) distance D_N.
     w_n: float = 50.0
     # Termination: IoU with the last demo state above this, and J = T - 1.
@@ -43,31 +38,6 @@ class RewardConfig:
     # from one at another height (the hang demo lowers 32 cm straight down), so
     # the distance breaks such ties; 0 gives the paper's J.
     progress_distance_weight: float = 2.0
-    # ... plus this [1/m] x mean distance of the grasped corners (measured by
-    # the robot, so trusted more than the estimated keypoints). 0: off.
-    progress_grasp_weight: float = 0.0
-    # The demo's grasped corners s1, s2 tracked through the demo
-    # (`track_grasped_corners`): a frame's f_R estimate of one is dropped where
-    # f_R is unsure of it (heatmap spread above `demo_grasp_max_spread_px`
-    # pixels; 3-5 px where it reads the demo right) or where it lies more than
-    # `demo_grasp_max_jump` [m] from the median of its neighbours' (two frames
-    # either side; the demo grippers move about 3 cm a frame), and filled
-    # from the other corner or interpolated. Both corners steer the grasp
-    # prior and w_grasp. On the shipped hang demo f_R misreads them by up
-    # to 24 cm where the towel hangs over the plate. .inf for both (the
-    # default): f_R's raw estimates, tracked (the paper's estimates); 9 px
-    # and 0.08 m serve the grasp prior and grasp terms, which lean on these
-    # corners.
-    demo_grasp_max_spread_px: float = math.inf
-    demo_grasp_max_jump: float = math.inf
-    # ... and dropped where it lies more than this [m] from where the
-    # corner's last two kept frames, moving on at their velocity, put it
-    # (the hands move smoothly). Where the towel is lowered in front of the
-    # plate, seen from above its top edge lies on the plate, and f_R can put
-    # both grasped corners there, sure of them and consistently over the
-    # last frames, so that the neighbour test keeps them; this test holds
-    # the corner where f_R last read it right. .inf: off.
-    demo_grasp_max_deviation: float = math.inf
     # f_A training: steps, batch, learning rate, source-state jitter.
     registration_steps: int = 1500
     registration_batch: int = 256
@@ -77,81 +47,11 @@ class RewardConfig:
     seed: int = 0
 
     def __post_init__(self):
-        for name in ("w_p", "w_r", "w_grasp", "w_n", "progress_grasp_weight"):
+        for name in ("w_p", "w_r", "w_n"):
             if getattr(self, name) < 0:
                 raise ValueError(f"reward.{name} must be non-negative")
         if not 0 < self.tau_i <= 1:
             raise ValueError(f"reward.tau_i must be in (0, 1], got {self.tau_i}")
-        for name in (
-            "demo_grasp_max_spread_px",
-            "demo_grasp_max_jump",
-            "demo_grasp_max_deviation",
-        ):
-            if not getattr(self, name) > 0:
-                raise ValueError(
-                    f"reward.{name} must be positive, got {getattr(self, name)}"
-                )
-
-
-def track_grasped_corners(
-    states: np.ndarray, spread: np.ndarray, config: RewardConfig
-) -> np.ndarray:
-    """The demo states (T, M, 3) with the grasped corners s1, s2 tracked
-    through the frames (see RewardConfig.demo_grasp_max_spread_px).
-
-    A corner's f_R estimate is kept where f_R is sure of it, it agrees with
-    its neighbours and, going forward through the frames, it lies near where
-    the corner's last two kept estimates, moving on at their velocity, put
-    it (`demo_grasp_max_deviation`). The two corners are held by two hands,
-    so their offset changes slowly: where one corner is dropped and the
-    other kept, it is placed at the other plus their offset (interpolated
-    between the frames where both were kept); where both are dropped, each
-    is interpolated between its frames (held before the first and after the
-    last).
-    `spread` (T, M): f_R's spread [px]."""
-    states = np.array(states, dtype=float, copy=True)
-    T, M, _ = states.shape
-    idx = corner_indices(M)
-    corners = [idx["s1"], idx["s2"]]
-    frames = np.arange(T)
-    kept = []
-    for k in corners:
-        p = states[:, k]
-        sure = spread[:, k] <= config.demo_grasp_max_spread_px
-        ok = sure.copy()
-        for t in np.flatnonzero(sure):
-            near = [u for u in range(t - 2, t + 3) if 0 <= u < T and u != t and sure[u]]
-            if len(near) >= 2:
-                median = np.median(p[near], axis=0)
-                ok[t] = np.linalg.norm(p[t] - median) <= config.demo_grasp_max_jump
-        if math.isfinite(config.demo_grasp_max_deviation):
-            history = []  # frames kept so far
-            for t in np.flatnonzero(ok):
-                if len(history) >= 2:
-                    a, b = history[-2:]
-                    ahead = p[b] + (p[b] - p[a]) * (t - b) / (b - a)
-                    if np.linalg.norm(p[t] - ahead) > config.demo_grasp_max_deviation:
-                        ok[t] = False
-                        continue
-                history.append(t)
-        kept.append(ok)
-    both = kept[0] & kept[1]
-    if both.all() or not both.any():
-        return states  # all read right, or no frame to track from
-    p1, p2 = states[:, corners[0]].copy(), states[:, corners[1]].copy()
-
-    def interp(values, where):
-        good = np.flatnonzero(where)
-        return np.stack([np.interp(frames, good, values[good, d]) for d in range(3)], 1)
-
-    offset = interp(p2 - p1, both)
-    only1, only2 = kept[0] & ~kept[1], kept[1] & ~kept[0]
-    p2[only1] = p1[only1] + offset[only1]
-    p1[only2] = p2[only2] - offset[only2]
-    known = kept[0] | kept[1]
-    states[:, corners[0]] = interp(p1, known)
-    states[:, corners[1]] = interp(p2, known)
-    return states
 
 
 def euler_to_matrix(e: torch.Tensor) -> torch.Tensor:
@@ -270,15 +170,10 @@ class DemoModel:
         sim = self.similarity(S, (lo, hi))
         score = sim
         cfg = self.config
-        if cfg.progress_distance_weight > 0 or cfg.progress_grasp_weight > 0:
-            # Keypoint distances (..., W, M) to each demo state, computed once
-            # for both terms.
+        if cfg.progress_distance_weight > 0:
+            # Mean keypoint distance (..., W) to each demo state.
             d = (S[..., None, :, :] - self.states[lo:hi]).norm(dim=-1)
-            score = (
-                score
-                - cfg.progress_distance_weight * d.mean(-1)
-                - cfg.progress_grasp_weight * d[..., self.grasped].mean(-1)
-            )
+            score = score - cfg.progress_distance_weight * d.mean(-1)
         _, j = score.max(-1)
         best_iou = sim.max(-1).values
         centre = S[..., :2].mean(-2)
@@ -295,10 +190,6 @@ class DemoModel:
         sub = self.states[(J + 1).clamp(max=self.T - 1)]
         e, T = self.f_A(S, sub)
         d_p = T.norm(dim=-1) + cfg.w_r * e.norm(dim=-1)
-        if cfg.w_grasp > 0:
-            g = self.grasped
-            d_grasp = (S[..., g, :] - sub[..., g, :]).norm(dim=-1).mean(-1)
-            d_p = d_p + cfg.w_grasp * d_grasp
         last = self.states[-1]
         prev = self.states[max(self.T - 2, 0)]
         d_last = (S - last).norm(dim=-1).mean(-1)

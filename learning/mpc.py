@@ -2,9 +2,8 @@
 in torch. Works in the task object's frame.
 
 Each control step, from the current state S_t:
-1. action prior: roll h steps through f_I (or, with `prior="grasp"`, the
-   grasped corners' offsets) and f_D, each aiming at the subgoal S_E[J + 1]
-   of the imagined state;
+1. action prior: roll h steps through f_I and f_D, each aiming at the
+   subgoal S_E[J + 1] of the imagined state;
 2. sample N sequences X = X_prior + eps, eps ~ N(mu, diag Sigma); roll out
    with f_D; score sum_k gamma^(k-1) R_E(S_t+k) and count rule violations;
 3. keep the feasible ones, move (mu, Sigma) towards their top elites with
@@ -12,8 +11,7 @@ Each control step, from the current state S_t:
    the iteration cap (a count, never the clock: the same seed gives the same
    action on an idle and on a busy machine);
 4. return the first action of the best feasible sequence (the paper's
-   choice) or, with `execute="mean"`, of the final elite mean when its
-   predicted rollout is feasible.
+   choice).
 """
 
 import dataclasses as dc
@@ -31,10 +29,6 @@ from fabric_imitation.learning.safety import (
     rule_violations,
     valid_actions,
 )
-
-# [m] how far a predicted cloth point may be above the higher gripper (or the
-# object's top): keypoint noise and a cloth bulging over the grasp.
-CLOTH_ABOVE_GRIPPERS = 0.05
 
 
 class Dynamics(Protocol):
@@ -68,30 +62,6 @@ class MpcConfig:
     # repair_prior false: the prior is used as f_I gives it (the paper's).
     repair_prior: bool = True
     prior_candidates: int = 64
-    # f_D's predictions are kept above the table and below the grippers
-    # (Mpc._predict); false (the default): f_D's output as it is (the
-    # paper's). The projection succeeded 2.2 pp more often at development
-    # seeds 0-2 (90 paired trials), Newcombe 95 % [-6.0, +10.5]: not a
-    # measurable benefit.
-    project_predictions: bool = False
-    # Progress tracking: J may move back by lag and ahead by lead per step
-    # (lead < 0, the default: search the whole demo every step, as in the
-    # paper). A window of 1 back and 2 ahead succeeded 5.6 pp more often at
-    # development seeds 0-2 (90 paired trials), Newcombe 95 % [-4.8, +15.9]:
-    # not a measurable benefit.
-    progress_lag: int = 1
-    progress_lead: int = -1
-    # Which first action is applied: "best" (the paper's: the feasible
-    # sampled sequence with the highest reward) or "mean" (the final elite
-    # mean, when its predicted rollout is feasible; else the best). The best
-    # of 500 noisy samples jitters by up to 3 cm per step; the elite mean is
-    # smoother, but on box it leaves more episodes running to the step cap.
-    execute: str = "best"
-    # Action prior: "inverse" (the paper's: f_I towards each subgoal) or
-    # "grasp" (each gripper straight towards the subgoal's grasped corner:
-    # the exact inverse for the two keypoints the grippers hold, which does
-    # not depend on f_R's estimates of the rest of the cloth).
-    prior: str = "inverse"
     # Carry the noise distribution (mu, Sigma) from one control step to the
     # next, shifted by one step (the last repeated), as the paper's
     # Algorithm 1 keeps it across its outer loop; false: every step starts
@@ -116,10 +86,6 @@ class MpcConfig:
             raise ValueError(f"mpc.tau_conv must be positive, got {self.tau_conv}")
         if not self.sigma0 > 0:
             raise ValueError(f"mpc.sigma0 must be positive, got {self.sigma0}")
-        if self.execute not in ("best", "mean"):
-            raise ValueError(f"mpc.execute must be best or mean, got {self.execute!r}")
-        if self.prior not in ("inverse", "grasp"):
-            raise ValueError(f"mpc.prior must be inverse or grasp, got {self.prior!r}")
 
 
 @dc.dataclass
@@ -138,8 +104,6 @@ class MpcResult:
     # When infeasible: how many of the last iteration's sampled sequences
     # break each safety rule at some step (which rule blocked the step).
     blocked_by: dict[str, int] | None = None
-    # Solved with rule 2 as written: no sequence kept the estimate margin.
-    margin_dropped: bool = False
     # The noise distribution (mu, variance), each (h, 6), after the last
     # iteration (what `solve(noise=...)` takes at the next step).
     noise: tuple[torch.Tensor, torch.Tensor] | None = None
@@ -160,11 +124,6 @@ class Mpc:
         self.safety = safety
         self.ctx = safety_ctx
         self.config = config
-        self._object_top = (
-            float(safety_ctx.object_size[2])
-            if safety_ctx.object_size is not None
-            else 0.0
-        )
 
     def _window(self, J: int) -> tuple[int, int]:
         """Demo states the rollouts are compared with: from J - 1 on, a fixed
@@ -186,24 +145,8 @@ class Mpc:
         self.rollout(S, X, self._window(0))
 
     def _predict(self, s: torch.Tensor, a: torch.Tensor) -> torch.Tensor:
-        """f_D(s, a) projected onto what the cloth can physically reach, in
-        the object frame: not below the table top (z >= 0) and not more than
-        `CLOTH_ABOVE_GRIPPERS` above the higher of the grippers and the
-        object's top (the cloth hangs from the grippers or lies on the
-        object). A prediction outside is a model error, not a move to rule
-        out. Without the floor, f_D's few-millimetre dips under the table for
-        points lying on it break the workspace rule for every sampled
-        sequence; without the ceiling, f_D raising a crumpled towel's far edge
-        7 cm per step above the grippers does the same at the workspace's
-        0.5 m ceiling (both on hang with the object turned)."""
-        nxt = self.dynamics.forward(s, a)
-        if not self.config.project_predictions:
-            return nxt
-        i1, i2 = self.demo.grasped
-        grippers_z = torch.maximum(s[..., i1, 2] + a[..., 2], s[..., i2, 2] + a[..., 5])
-        ceiling = grippers_z.clamp_min(self._object_top) + CLOTH_ABOVE_GRIPPERS
-        z = torch.minimum(nxt[..., 2].clamp_min(0.0), ceiling[..., None])
-        return torch.cat([nxt[..., :2], z[..., None]], -1)
+        """f_D(s, a), in the object frame."""
+        return self.dynamics.forward(s, a)
 
     def _clip(self, A: torch.Tensor) -> torch.Tensor:
         b = self.safety.max_step
@@ -213,8 +156,7 @@ class Mpc:
     def action_prior(
         self, S: torch.Tensor, gen: torch.Generator | None = None, window=None
     ):
-        """(h, 6): iterate f_I (or, with `prior="grasp"`, the grasped
-        corners' offsets) towards the subgoal of the imagined state, f_D.
+        """(h, 6): iterate f_I towards the subgoal of the imagined state, f_D.
 
         A prior action that breaks a rule is replaced by the nearest valid one
         among `prior_candidates` perturbations of it (zero if none is valid),
@@ -225,11 +167,7 @@ class Mpc:
         s = S[None]
         for i in range(cfg.horizon):
             goal = self.subgoal(s, window, i)
-            if cfg.prior == "grasp":
-                i1, i2 = self.demo.grasped
-                a = torch.cat([goal[:, i1] - s[:, i1], goal[:, i2] - s[:, i2]], -1)
-            else:
-                a = self.dynamics.inverse(s, goal)
+            a = self.dynamics.inverse(s, goal)
             a = self._clip(a)
             nxt = self._predict(s, a)
             repair = cfg.use_cost and cfg.repair_prior
@@ -249,17 +187,10 @@ class Mpc:
         J, _ = self.demo.progress(s, window)
         return self.demo.states[(J + 1).clamp(max=self.demo.T - 1)]
 
-    def current_progress(self, S, step: int, previous_progress: int | None) -> int:
-        """The demo step J that state S (M, 3) matches, searched in
-        [J - progress_lag, J + progress_lead] of the last step's J."""
-        cfg = self.config
-        search = None
-        if previous_progress is not None and cfg.progress_lead >= 0:
-            search = (
-                max(0, previous_progress - cfg.progress_lag),
-                min(self.demo.T, previous_progress + cfg.progress_lead + 1),
-            )
-        J0, _ = self.demo.progress(S[None], search)
+    def current_progress(self, S, step: int) -> int:
+        """The demo step J that state S (M, 3) matches, over the whole demo
+        (the paper's)."""
+        J0, _ = self.demo.progress(S[None])
         return int(J0[0])
 
     def finished(self, S, steps: int) -> bool:
@@ -336,61 +267,16 @@ class Mpc:
         *,
         step: int = 0,
         seed: int = 0,
-        previous_progress: int | None = None,
         frame_pose=None,
-        cloth_on_object: bool = False,
-        noise=None,
-    ) -> MpcResult:
-        """One control step from state S (M, 3) (see `_solve_once`). Where
-        no sampled sequence keeps rule 2's margin for estimates
-        (SafetyContext.direction_margin_deg), the step is solved once more
-        with the rule as written, instead of ending the episode."""
-        kwargs = dict(
-            step=step,
-            seed=seed,
-            previous_progress=previous_progress,
-            frame_pose=frame_pose,
-            cloth_on_object=cloth_on_object,
-            noise=noise,
-        )
-        result = self._solve_once(S, **kwargs)
-        margin = self.ctx.direction_margin_deg
-        if result.feasible or margin == 0 or not self.config.use_cost:
-            return result
-        self.ctx = dc.replace(self.ctx, direction_margin_deg=0.0)
-        try:
-            again = self._solve_once(S, **kwargs)
-        finally:
-            self.ctx = dc.replace(self.ctx, direction_margin_deg=margin)
-        again.seconds += result.seconds
-        again.iterations += result.iterations
-        again.iteration_seconds = result.iteration_seconds + again.iteration_seconds
-        again.margin_dropped = True
-        return again
-
-    def _solve_once(
-        self,
-        S,
-        *,
-        step: int = 0,
-        seed: int = 0,
-        previous_progress: int | None = None,
-        frame_pose=None,
-        cloth_on_object: bool = False,
         noise=None,
     ) -> MpcResult:
         """One control step from state S (M, 3).
 
-        With `previous_progress` (the last step's J) the current progress is
-        searched in [J - progress_lag, J + progress_lead] only: a top-down
-        polygon cannot tell a lifted or lowered cloth from one at another
-        height, and free jumps of J made the controller hunt back and forth.
         `frame_pose` ([x, y, yaw]) is the object's pose now, where the
         workspace rule's world box is checked (default: the one given at
-        construction). `cloth_on_object`: the cloth was seen on the object
-        in an earlier step (SafetyContext.cloth_on_object). `noise`: the
-        previous step's final (mu, variance) (`MpcResult.noise`), used with
-        `warm_start`, shifted by one step; None: start from (0, sigma0^2).
+        construction). `noise`: the previous step's final (mu, variance)
+        (`MpcResult.noise`), used with `warm_start`, shifted by one step;
+        None: start from (0, sigma0^2).
         """
         cfg = self.config
         t0 = time.perf_counter()
@@ -400,10 +286,9 @@ class Mpc:
             frame_pose=self.ctx.frame_pose
             if frame_pose is None
             else np.asarray(frame_pose, float),
-            cloth_on_object=cloth_on_object,
         )
         S = torch.as_tensor(S, dtype=torch.float32)
-        J0 = self.current_progress(S, step, previous_progress)
+        J0 = self.current_progress(S, step)
         window = self._window(J0)
         gen = torch.Generator().manual_seed(seed * 100003 + step)
         prior = (
@@ -463,11 +348,6 @@ class Mpc:
                 break
         feasible = best_a is not None
         action = best_a if feasible else torch.zeros(6)
-        if feasible and cfg.execute == "mean":
-            X_mean = self._clip(prior + mu)[None]
-            r_mean, cost_mean = self.rollout(S, X_mean, window)
-            if not cfg.use_cost or cost_mean[0] == 0:
-                action, best_r = X_mean[0, 0], float(r_mean[0])
         seconds = time.perf_counter() - t0
         return MpcResult(
             action,

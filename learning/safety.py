@@ -54,35 +54,6 @@ class SafetyConfig:
     # far corner up by the grippers, where a move down and back looks safe
     # but points far off the true side. 0: straight below only.
     hanging_swing_deg: float = 10.0
-    # The controller's view only, as above: once the cloth lies on the
-    # object's top (a keypoint within DRAPE_MARGIN of the top face, or
-    # keypoints on opposite sides of the object, one below its top), judge
-    # rule 2 also with each far corner hanging down the object's far side,
-    # where a side draped over the object puts it out of the camera's sight
-    # (SafetyContext.far_corners_may_drape; the side laid towards the top's
-    # nearest point and square to the face it crosses). Once seen on the
-    # object, the cloth is taken to stay there for the episode
-    # (MpcController), since later estimates can miss it. Off by default:
-    # on `box_big` it also refuses the moves that carry the cloth onto the
-    # box, and can leave no feasible action while the far corners still
-    # trail behind.
-    hidden_corners_drape: bool = False
-    # The controller's view only: rule 2 judged on a hypothesised hidden far
-    # corner (the two switches above) uses tau_d_deg less this [deg], since
-    # where a hidden corner lies is known only roughly. Off by default: on
-    # `hang` it removes some rule breaks but costs successes.
-    hidden_corner_margin_deg: float = 0.0
-    # The controller's view only: rule 2 on the estimated state (every far
-    # corner, seen or hypothesised) uses tau_d_deg less this [deg] (the
-    # hypothesised ones less hidden_corner_margin_deg on top). The MPC's
-    # best action often lies on the rule's boundary, where f_R's few
-    # millimetres of error decide on which side of it the true cloth is.
-    # Where no sampled sequence keeps the margin, the MPC solves the step
-    # again with the rule as written (Mpc.solve) rather than end the episode.
-    # 0 (the paper's, the default): at 5 degrees, at development seeds 0-2
-    # (90 paired trials) the one policy succeeded 1.1 pp more often than
-    # without it, Newcombe 95 % [-8.9, +11.1]: not a measurable benefit.
-    estimate_margin_deg: float = 0.0
 
     def __post_init__(self):
         if not 0 < self.tau_c < self.tau_f:
@@ -98,21 +69,6 @@ class SafetyConfig:
             raise ValueError(
                 "safety.tau_d_demo_margin_deg must be in [0, 90), got "
                 f"{self.tau_d_demo_margin_deg}"
-            )
-        if not 0 <= self.hidden_corner_margin_deg < self.tau_d_deg:
-            raise ValueError(
-                "safety.hidden_corner_margin_deg must be in [0, tau_d_deg), got "
-                f"{self.hidden_corner_margin_deg}"
-            )
-        if not (
-            self.estimate_margin_deg >= 0
-            and self.estimate_margin_deg + self.hidden_corner_margin_deg
-            < self.tau_d_deg
-        ):
-            raise ValueError(
-                "safety.estimate_margin_deg must be >= 0 and, with "
-                "hidden_corner_margin_deg, below tau_d_deg, got "
-                f"{self.estimate_margin_deg}"
             )
         if not 0 <= self.hanging_swing_deg < 90:
             raise ValueError(
@@ -185,32 +141,14 @@ class SafetyContext:
     # hanging_swing_deg), so an action passes only if it passes wherever
     # the corner may hang.
     far_corners_may_hang: bool = False
-    # ... and may lie across the object: with part of the cloth on the
-    # object's top, a side draped over it from the grasped corner hangs down
-    # the far face, its far corner under the cloth (`_draped` and
-    # `_draped_straight`: towards the nearest point of the top, or square
-    # to the face it crosses). Needs object_size.
-    far_corners_may_drape: bool = False
-    # The cloth has been seen on the object in an earlier step of this
-    # episode (the controller's memory): the drape hypothesis holds even
-    # where the current estimate shows no cloth on it.
-    cloth_on_object: bool = False
     # Rest length [m] of the sides s1-s3 and s2-s4 (None: edge_length).
     side_length: float | None = None
-    # The states are estimates: rule 2 keeps this much [deg] inside
-    # tau_d_deg (SafetyConfig.estimate_margin_deg; 0 for the true cloth).
-    direction_margin_deg: float = 0.0
     # Spheres (n, 4) [x, y, z, radius] covering a gripper's hand, around the
     # grasped point with world-aligned axes: rule 4 also refuses a gripper
     # where one of them enters the object's box (SafetyConfig.hand_shape;
     # None: the grippers are points).
     hand_spheres: np.ndarray | None = None
 
-
-# A keypoint this close [m] to the object's top face (within its footprint
-# grown by as much, at most this far above or below the top) puts the cloth
-# on it.
-DRAPE_MARGIN = 0.03
 
 RULES = ("bounds", "distance", "direction", "workspace", "object")
 
@@ -239,10 +177,8 @@ def rule_violations(
     d = (s1n - s2n).norm(dim=-1)
     L = ctx.edge_length
     out["distance"] = (d <= config.tau_c * L) | (d >= config.tau_f * L)
-    limit = config.tau_d_deg - ctx.direction_margin_deg
+    limit = config.tau_d_deg
     cos_max = math.cos(math.radians(limit))
-    # A hypothesised hidden corner is judged with the margin.
-    cos_hidden = math.cos(math.radians(limit - config.hidden_corner_margin_deg))
 
     def bad_direction(a, edge, cos_limit=cos_max):
         na, ne = a.norm(dim=-1), edge.norm(dim=-1)
@@ -257,12 +193,12 @@ def rule_violations(
             s4d = _dropped(s4, fraction, ctx, floor4)
             out["direction"] = (
                 out["direction"]
-                | bad_direction(a_l, s1 - s3d, cos_hidden)
-                | bad_direction(a_r, s2 - s4d, cos_hidden)
+                | bad_direction(a_l, s1 - s3d)
+                | bad_direction(a_r, s2 - s4d)
             )
         # A side hanging free: its far corner within the swing of straight
         # below the gripper, so the edge points within it of straight up.
-        swing = limit - config.hidden_corner_margin_deg - config.hanging_swing_deg
+        swing = limit - config.hanging_swing_deg
         cos_swing = math.cos(math.radians(max(swing, 0.0)))
         side = ctx.side_length or ctx.edge_length
         up = torch.tensor([0.0, 0.0, 1.0], dtype=S.dtype)
@@ -271,14 +207,6 @@ def rule_violations(
             if free.any():  # rarely: the rollouts' grippers are low
                 out["direction"] = out["direction"] | (
                     free & bad_direction(a, up, cos_swing)
-                )
-    if ctx.far_corners_may_drape and ctx.object_size is not None:
-        on_top = _cloth_on_top(S, ctx) | ctx.cloth_on_object
-        for a, g in ((a_l, s1), (a_r, s2)) if on_top.any() else ():
-            for path in (_draped, _draped_straight):
-                far, applies = path(g, ctx)
-                out["direction"] = out["direction"] | (
-                    on_top & applies & bad_direction(a, g - far, cos_hidden)
                 )
     grippers = torch.stack([s1n, s2n], -2)
     out["workspace"] = _outside_workspace(S, A, S_next, grippers, ctx)
@@ -385,122 +313,6 @@ def _dropped(
         floor = _surface_below(p, ctx)
     z = p[..., 2] - fraction * (p[..., 2] - floor).clamp_min(0.0)
     return torch.cat([p[..., :2], z[..., None]], -1)
-
-
-def cloth_on_object(S, ctx: SafetyContext) -> bool:
-    """Whether the estimated state S (M, 3) shows cloth on the object's top
-    (or across it), where `ctx.far_corners_may_drape` applies; False where
-    it does not."""
-    if not ctx.far_corners_may_drape or ctx.object_size is None:
-        return False
-    return bool(_cloth_on_top(torch.as_tensor(S, dtype=torch.float64), ctx))
-
-
-def _cloth_on_top(S: torch.Tensor, ctx: SafetyContext) -> torch.Tensor:
-    """(...) True where the cloth of S (..., M, 3) lies over the object's top
-    (the object frame): a keypoint on the top (within DRAPE_MARGIN of it),
-    or the cloth across the object, keypoints on opposite sides of it and
-    one of them below its top (`_cloth_across`)."""
-    size = torch.as_tensor(ctx.object_size, dtype=S.dtype)
-    m = DRAPE_MARGIN
-    on_top = (
-        (S[..., 0].abs() < size[0] / 2 + m)
-        & (S[..., 1].abs() < size[1] / 2 + m)
-        & ((S[..., 2] - size[2]).abs() < m)
-    ).any(-1)
-    return on_top | _cloth_across(S, size)
-
-
-def _cloth_across(S: torch.Tensor, size: torch.Tensor) -> torch.Tensor:
-    """(...) True where keypoints of S (..., M, 3) lie on opposite sides of
-    the object (beyond two opposite faces, within the other faces' extent
-    grown by DRAPE_MARGIN) and one of them lower than its top: the cloth
-    between them cannot go through the object, so it passes over the top.
-    On `hang` the side over the plate is out of f_R's sight, which puts its
-    far corner 1-3 cm from the gripper in front of the plate while the
-    other side's far corner shows behind it and no keypoint on the top, so
-    only this test sees the cloth on the object."""
-    half, top = size[:2] / 2, size[2]
-    below = S[..., 2] < top
-    out = torch.zeros(S.shape[:-2], dtype=torch.bool)
-    for axis in (0, 1):
-        within = S[..., 1 - axis].abs() < half[1 - axis] + DRAPE_MARGIN
-        before = within & (S[..., axis] < -half[axis])
-        beyond = within & (S[..., axis] > half[axis])
-        out = out | (
-            ((before & below).any(-1) & beyond.any(-1))
-            | ((beyond & below).any(-1) & before.any(-1))
-        )
-    return out
-
-
-def _draped(g: torch.Tensor, ctx: SafetyContext) -> tuple[torch.Tensor, torch.Tensor]:
-    """Where the far corner of the side grasped at g (..., 3) lies if that
-    side is draped over the object (the object frame): from g straight to
-    the nearest point of the top face, across the top in that direction,
-    and down the far face by what is left of the side's length (then out
-    over the table). Returns that point (..., 3) and where the hypothesis
-    can hold (...): g is outside the top's footprint and the side is long
-    enough to get over (the caller also needs cloth on the top,
-    `_cloth_on_top`)."""
-    half = torch.as_tensor(ctx.object_size[:2], dtype=g.dtype) / 2
-    outside = (g[..., :2].abs() > half).any(-1)
-    entry_xy = torch.maximum(torch.minimum(g[..., :2], half), -half)
-    u = entry_xy - g[..., :2]
-    n = u.norm(dim=-1, keepdim=True)
-    far, rest = _laid_over(g, entry_xy, u / n.clamp_min(1e-9), ctx)
-    return far, outside & (n[..., 0] > 1e-6) & (rest > 0)
-
-
-def _draped_straight(
-    g: torch.Tensor, ctx: SafetyContext
-) -> tuple[torch.Tensor, torch.Tensor]:
-    """As `_draped`, but the side runs straight across the object, square to
-    the face it crosses (the face g lies furthest beyond), from g's own place
-    along that face (kept within DRAPE_MARGIN of its ends): a sheet draped
-    over a straight edge keeps its sides square to the edge, so a side
-    grasped beyond the plate's end hangs beyond it. On `hang` the true far
-    corner can lie a few centimetres beyond the plate's end, where
-    `_draped` puts it at the end, less off the move than the true side."""
-    half = torch.as_tensor(ctx.object_size[:2], dtype=g.dtype) / 2
-    gap = g[..., :2].abs() - half  # (..., 2) how far g lies beyond each face
-    # The crossed axis is the one g lies furthest beyond: 1 (a face of
-    # constant y) or 0.
-    crossed = torch.stack([gap[..., 0] > gap[..., 1], gap[..., 1] >= gap[..., 0]], -1)
-    reach = half + DRAPE_MARGIN
-    along = torch.maximum(torch.minimum(g[..., :2], reach), -reach)
-    side = torch.sign(g[..., :2])
-    entry_xy = torch.where(crossed, side * half, along)
-    u = torch.where(crossed, -side, torch.zeros_like(side))
-    far, rest = _laid_over(g, entry_xy, u, ctx)
-    return far, (gap.max(-1).values > 0) & (rest > 0)
-
-
-def _laid_over(
-    g: torch.Tensor, entry_xy: torch.Tensor, u: torch.Tensor, ctx: SafetyContext
-) -> tuple[torch.Tensor, torch.Tensor]:
-    """The far corner (..., 3) of a side grasped at g that reaches the top
-    face's edge at entry_xy, runs across the top along the unit direction u
-    (..., 2) and down the far face by what is left of its length, then out
-    over the table; and that length left once across the top (...)."""
-    size = torch.as_tensor(ctx.object_size, dtype=g.dtype)
-    half, h = size[:2] / 2, size[2]
-    # Across the top: the ray entry + t u leaves the footprint at the
-    # smaller of its two exits.
-    moving = u.abs() > 1e-9
-    t_axis = torch.where(
-        moving,
-        (torch.sign(u) * half - entry_xy) / torch.where(moving, u, torch.ones_like(u)),
-        torch.full_like(u, float("inf")),
-    )
-    t = t_axis.min(-1).values.clamp_min(0.0)
-    to_top = torch.cat([entry_xy - g[..., :2], (h - g[..., 2])[..., None]], -1)
-    rest = (ctx.side_length or ctx.edge_length) - to_top.norm(dim=-1) - t
-    exit_xy = entry_xy + t[..., None] * u
-    down = torch.minimum(rest, h).clamp_min(0.0)
-    beyond = (rest - h).clamp_min(0.0)
-    far = torch.cat([exit_xy + beyond[..., None] * u, (h - down)[..., None]], -1)
-    return far, rest
 
 
 def valid_actions(

@@ -8,7 +8,6 @@ import time
 
 import numpy as np
 import torch
-from fabric_imitation.learning.safety import cloth_on_object
 from fabric_imitation.learning.state import (
     PlanarPose,
     corner_indices,
@@ -422,11 +421,11 @@ class MpcController(StepController):
     step."""
 
     def __init__(self, *, mpc, seed: int = 0, **kwargs):
-        # memory: [cloth seen on the object, mu (h x 6), variance (h x 6)]:
-        # the noise distribution carried to the next step (mpc.warm_start);
-        # a zero variance means none carried.
+        # memory: [mu (h x 6), variance (h x 6)]: the noise distribution
+        # carried to the next step (mpc.warm_start); a zero variance means
+        # none carried.
         self._h = mpc.config.horizon
-        super().__init__(memory_size=1 + 12 * self._h, **kwargs)
+        super().__init__(memory_size=12 * self._h, **kwargs)
         self._mpc = mpc
         self._seed = seed
 
@@ -434,20 +433,13 @@ class MpcController(StepController):
         return TERMINATED_CLASSIFIER if self._mpc.finished(S, steps) else None
 
     def Decide(self, context, S, pose, steps, progress):
-        # Once seen on the object, the cloth is taken to stay there (the
-        # ``memory`` state): a towel over the plate seen from the front may
-        # show no keypoint on it (SafetyContext.cloth_on_object).
-        memory = self._get(context, "memory")
-        on_object = bool(memory[0]) or cloth_on_object(S, self._mpc.ctx)
-        mu, var = memory[1:].reshape(2, self._h, 6)
+        mu, var = self._get(context, "memory").reshape(2, self._h, 6)
         noise = (mu, var) if var.any() else None
         result = self._mpc.solve(
             S,
             step=steps,
             seed=self._seed,
-            previous_progress=progress,
             frame_pose=pose,
-            cloth_on_object=on_object,
             noise=noise,
         )
         if not result.feasible:
@@ -465,12 +457,6 @@ class MpcController(StepController):
                 result.iterations,
                 {"converged": 0.0},
             )
-        if result.margin_dropped:
-            _LOG.info(
-                "step %d: no action kept rule 2's estimate margin; solved with "
-                "the rule as written",
-                steps,
-            )
         return (
             RUNNING,
             result.action.numpy(),
@@ -478,8 +464,7 @@ class MpcController(StepController):
             result.iterations,
             {
                 "memory": np.concatenate(
-                    [[float(on_object)]]
-                    + [np.ravel(x) for x in result.noise or (np.zeros(12 * self._h),)]
+                    [np.ravel(x) for x in result.noise or (np.zeros(12 * self._h),)]
                 ),
                 "converged": float(result.converged),
             },

@@ -65,7 +65,7 @@ class RefereeRules:
 
     def safety(self) -> SafetyConfig:
         """The rules as a SafetyConfig with none of the controller's
-        additions (no hidden-corner hypotheses, no margins)."""
+        additions (no hidden-corner hypotheses)."""
         return SafetyConfig(
             tau_c=self.tau_c,
             tau_f=self.tau_f,
@@ -75,9 +75,6 @@ class RefereeRules:
             max_step=self.max_step,
             hidden_corners_hang=False,
             hanging_swing_deg=0.0,
-            hidden_corners_drape=False,
-            hidden_corner_margin_deg=0.0,
-            estimate_margin_deg=0.0,
         )
 
     def fingerprint(self) -> str:
@@ -131,11 +128,7 @@ def TaskSafetyContext(scenario: Scenario, *, estimated: bool = False) -> SafetyC
             else None
         ),
         far_corners_may_hang=estimated and scenario.safety.hidden_corners_hang,
-        far_corners_may_drape=estimated and scenario.safety.hidden_corners_drape,
         side_length=scenario.cloth.size[1],
-        direction_margin_deg=(
-            scenario.safety.estimate_margin_deg if estimated else 0.0
-        ),
         hand_spheres=(
             HandSpheres(scenario)
             if estimated and has_object and scenario.safety.hand_shape

@@ -12,7 +12,7 @@ import types
 import numpy as np
 import pytest
 import torch
-from fabric_imitation.learning import baseline_policies, demo_learning, mpc, safety
+from fabric_imitation.learning import baseline_policies, mpc, safety
 from fabric_imitation.learning.baseline_policies import (
     CfmPlanner,
     TcnConfig,
@@ -375,7 +375,7 @@ def test_tcn_mpc_is_the_tcn_reward_on_our_planner(trained):
         config=MpcConfig(horizon=2),
     )
     S = torch.tensor(demo[2], dtype=torch.float32)
-    assert planner.current_progress(S, 2, None) == 2
+    assert planner.current_progress(S, 2) == 2
     # Rollout step i is compared with demo state step + i + 1.
     assert torch.equal(planner._aligned(0), model.states[3])
     assert torch.equal(planner._aligned(5), model.states[5])  # after the end: the last
@@ -387,16 +387,13 @@ def _forbid_everything():
     """Rules no action passes: rule 1's band of grasped-edge lengths is
     empty, rule 2 allows no direction, and the object's box (rule 4) covers
     the whole workspace."""
-    rules = SafetyConfig(
-        tau_c=0.99999, tau_f=1.0, tau_d_deg=0.01, estimate_margin_deg=0.0
-    )
+    rules = SafetyConfig(tau_c=0.99999, tau_f=1.0, tau_d_deg=0.01)
     ctx = SafetyContext(
         edge_length=0.3,
         workspace_lower=np.array([-0.5, -0.5, -0.01]),
         workspace_upper=np.array([0.5, 0.5, 0.5]),
         object_size=np.array([5.0, 5.0, 5.0]),
         far_corners_may_hang=True,
-        far_corners_may_drape=True,
     )
     return rules, ctx
 
@@ -408,8 +405,8 @@ def _raises(*args, **kwargs):
 @pytest.mark.parametrize("name", ["zero", "cfm", "tcn"])
 def test_each_baseline_acts_where_the_safe_set_is_empty(trained, name, monkeypatch):
     """Fault injection: with rules that forbid every action and the safe
-    set, the action priors (f_I, the grasped corners, the MPC's) and the
-    demo's corner tracking all raising, each baseline still acts, within
+    set, the action priors (f_I, the MPC's) and the demo model all
+    raising, each baseline still acts, within
     the driver's limits (built from the same safety objects, as
     MakeImitationDiagram does)."""
     b, cfg = trained
@@ -426,7 +423,6 @@ def test_each_baseline_acts_where_the_safe_set_is_empty(trained, name, monkeypat
                 monkeypatch.setattr(module, attr, _raises)
     for attr in ("action_prior", "solve", "rollout", "_nearest_valid"):
         monkeypatch.setattr(mpc.Mpc, attr, _raises)
-    monkeypatch.setattr(demo_learning, "track_grasped_corners", _raises)
     for attr in ("progress", "reward", "done"):
         monkeypatch.setattr(DemoModel, attr, _raises)
     pose = [0.05, -0.1, 0.3]

@@ -10,7 +10,6 @@ from fabric_imitation.learning.demo_learning import (
     DemoModel,
     RewardConfig,
     learn_from_demo,
-    track_grasped_corners,
 )
 from fabric_imitation.learning.mpc import Mpc, MpcConfig
 from fabric_imitation.learning.polygon import iou
@@ -137,101 +136,17 @@ def test_reward_and_termination_on_hand_made_states():
     assert not bool(model.done(past + torch.tensor([0.0, -0.05, 0.0])))
 
 
-def test_d_p_grasp_term_on_hand_made_states():
+def test_d_p_on_hand_made_states():
     states = pulled_demo()
     S = states[3].copy()
     S[[0, 2], 0] += [0.02, -0.02]  # grasped corners 4 cm closer together
     S[[0, 2], 2] += 0.01
     sub = states[4]
     T = (sub - S).mean(0)
-    grasp = np.linalg.norm(S[[0, 2]] - sub[[0, 2]], axis=-1).mean()
     base = demo_model(states, w_p=10.0)
     r0, J = base.reward(torch.as_tensor(S)[None])
     assert int(J[0]) == 3
     assert float(r0[0]) == pytest.approx(3 - 10 * np.linalg.norm(T), abs=1e-4)
-    gripped = demo_model(states, w_p=10.0, w_grasp=1.5)
-    r, _ = gripped.reward(torch.as_tensor(S)[None])
-    assert float(r0[0] - r[0]) == pytest.approx(10 * 1.5 * grasp, abs=1e-4)
-    # The demo's own state: its grasped corners are 3 cm from the subgoal's.
-    r, _ = gripped.reward(torch.as_tensor(states[3])[None])
-    assert float(r[0]) == pytest.approx(3 - 10 * 0.03 - 10 * 1.5 * 0.03, abs=1e-4)
-
-
-def test_progress_grasp_weight_follows_the_measured_corners():
-    states = pulled_demo()
-    # Estimated keypoints of demo state 1, grasped corners where state 4 has
-    # them (what a hidden cloth under the grippers looks like).
-    S = states[1].copy()
-    S[[0, 2]] = states[4][[0, 2]]
-    S = torch.as_tensor(S)[None]
-    J, _ = demo_model(states).progress(S)
-    assert int(J[0]) == 1
-    J, _ = demo_model(states, progress_grasp_weight=5.0).progress(S)
-    assert int(J[0]) == 4
-    # The demo's own states keep their index.
-    J, _ = demo_model(states, progress_grasp_weight=5.0).progress(
-        torch.as_tensor(states)
-    )
-    assert J.tolist() == list(range(len(states)))
-
-
-def test_grasped_corners_are_tracked_through_misread_demo_frames():
-    """s1 and s2 (keypoints 0 and 2) move 3 cm a frame. f_R misreads s1 in
-    frame 5 while sure of it (spread 3 px) and is unsure of s2 in the last
-    three frames (spread 14 px, estimates 12 cm off): the tracked corners
-    follow the true path; the other keypoints stay f_R's."""
-    T = 12
-    truth = np.stack([square(0.0, -0.03 * t, 0.3, z=0.1) for t in range(T)])
-    est = truth.copy()
-    est[5, 0] += [0.2, 0.1, 0.0]
-    est[-3:, 2] += [-0.12, 0.0, 0.0]
-    est[3, 4] += [0.2, 0.0, 0.0]  # a far corner: left as it is
-    spread = np.full((T, 8), 3.0)
-    spread[-3:, 2] = 14.0
-    on = RewardConfig(demo_grasp_max_spread_px=9.0, demo_grasp_max_jump=0.08)
-    tracked = track_grasped_corners(est, spread, on)
-    np.testing.assert_allclose(tracked[:, [0, 2]], truth[:, [0, 2]], atol=1e-6)
-    np.testing.assert_array_equal(
-        tracked[:, [1, 3, 4, 5, 6, 7]], est[:, [1, 3, 4, 5, 6, 7]]
-    )
-    # Off (the default): f_R's estimates unchanged.
-    np.testing.assert_array_equal(
-        track_grasped_corners(est, spread, RewardConfig()), est
-    )
-    with pytest.raises(ValueError, match="reward.demo_grasp_max_jump"):
-        RewardConfig(demo_grasp_max_jump=0.0)
-
-
-def test_grasped_corners_read_off_the_hands_path_in_the_last_frames_are_dropped():
-    """The hands lower the grasped edge 3 cm a frame; in the last three
-    frames f_R reads both corners 6, 12 and 12 cm back and up (on the
-    plate's edge), sure of them (3 px) and agreeing with each other, so the
-    neighbour test keeps them. The deviation test drops them: the corners
-    are held where they were last read right, within the 3 cm the hands
-    moved on."""
-    T = 10
-    truth = np.stack([square(0.0, 0.0, 0.3, z=0.3 - 0.03 * t) for t in range(T)])
-    est = truth.copy()
-    for t, off in zip(range(T - 3, T), (0.06, 0.12, 0.12), strict=True):
-        est[t, [0, 2]] += [0.0, off, off]
-    spread = np.full((T, 8), 3.0)
-    neighbours = RewardConfig(demo_grasp_max_spread_px=9.0, demo_grasp_max_jump=0.08)
-    kept = track_grasped_corners(est, spread, neighbours)
-    assert np.linalg.norm(kept[-1, [0, 2]] - truth[-1, [0, 2]], axis=-1).min() > 0.15
-    smooth = dc.replace(neighbours, demo_grasp_max_deviation=0.06)
-    tracked = track_grasped_corners(est, spread, smooth)
-    np.testing.assert_allclose(tracked[: T - 3], truth[: T - 3], atol=1e-9)
-    np.testing.assert_allclose(tracked[T - 3 :, [0, 2]], truth[[T - 4] * 3][:, [0, 2]])
-    # On the true path (turning a corner at 3 cm a frame) nothing is dropped.
-    turn = np.stack(
-        [
-            square(0.0, -0.03 * min(t, 5), 0.3, z=0.3 - 0.03 * max(t - 5, 0))
-            for t in range(T)
-        ]
-    )
-    np.testing.assert_array_equal(track_grasped_corners(turn, spread, smooth), turn)
-    with pytest.raises(ValueError, match="reward.demo_grasp_max_deviation"):
-        RewardConfig(demo_grasp_max_deviation=-1.0)
 
 
 def test_keypoint_net_spread_is_small_where_the_heatmap_is_sharp():
@@ -339,13 +254,11 @@ def run_to_goal(mpc: Mpc, S: torch.Tensor, steps: int = 30) -> torch.Tensor:
     return S
 
 
-@pytest.mark.parametrize(
-    ("use_prior", "execute"), [(True, "best"), (False, "best"), (True, "mean")]
-)
-def test_mpc_on_a_linear_model_reaches_the_goal_and_stays_feasible(use_prior, execute):
+@pytest.mark.parametrize("use_prior", [True, False])
+def test_mpc_on_a_linear_model_reaches_the_goal_and_stays_feasible(use_prior):
     states = pulled_demo(n=8)
     model = demo_model(states, tau_i=0.9)
-    mpc = linear_goal_mpc(Linear(), model, use_prior=use_prior, execute=execute)
+    mpc = linear_goal_mpc(Linear(), model, use_prior=use_prior)
     S = torch.as_tensor(states[0] + [0.02, 0.0, 0.0])  # a little to the side
     S = run_to_goal(mpc, S)
     assert bool(model.done(S)), (S - torch.as_tensor(states[-1])).norm(dim=-1).mean()
@@ -358,24 +271,6 @@ class WrongInverse(Linear):
         return -super().inverse(S, S_next)
 
 
-def test_grasp_prior_follows_the_subgoal_corners_despite_a_wrong_f_i():
-    states = pulled_demo(n=8)
-    model = demo_model(states, tau_i=0.9)
-    mpc = linear_goal_mpc(WrongInverse(), model, prior="grasp")
-    S = torch.as_tensor(states[0] + [0.02, 0.0, 0.0])
-    goal = torch.as_tensor(states[1])
-    expected = torch.cat([goal[0] - S[0], goal[2] - S[2]])  # within 3 cm
-    assert torch.allclose(mpc.action_prior(S)[0], expected, atol=1e-6)
-    assert bool(model.done(run_to_goal(mpc, S)))
-
-
-class Rising(Linear):
-    """A model error: every predicted keypoint 1 m too high."""
-
-    def forward(self, S, A):
-        return super().forward(S, A) + torch.tensor([0.0, 0.0, 1.0])
-
-
 def small_mpc(dynamics, states) -> Mpc:
     """A 50-sample, 2-step MPC following `states` with `dynamics`."""
     return Mpc(
@@ -385,22 +280,6 @@ def small_mpc(dynamics, states) -> Mpc:
         safety_ctx=CTX,
         config=MpcConfig(num_samples=50, horizon=2, elites=5, max_iterations=2),
     )
-
-
-def test_mpc_projects_predictions_to_heights_the_cloth_can_reach():
-    states = pulled_demo()
-    mpc = small_mpc(Rising(), states)
-    mpc.config = dc.replace(mpc.config, project_predictions=True)
-    S = torch.as_tensor(states[0])
-    a = torch.tensor([[0.0, 0.0, 0.02, 0.0, 0.0, 0.01]])
-    nxt = mpc._predict(S[None], a)
-    # At most 5 cm above the higher gripper target (0.01 + 0.02).
-    assert float(nxt[..., 2].max()) == pytest.approx(0.03 + 0.05, abs=1e-6)
-    # Unprojected, every sequence would leave the 0.5 m workspace.
-    assert mpc.solve(S).feasible
-    mpc.config = dc.replace(mpc.config, project_predictions=False)
-    assert float(mpc._predict(S[None], a)[..., 2].max()) > 1.0
-    assert not mpc.solve(S).feasible
 
 
 def test_an_invalid_prior_action_is_repaired_unless_switched_off():
@@ -424,38 +303,6 @@ def test_mpc_reports_no_feasible_action():
     start = square(0, 0.3, 0.3, z=0.01)
     mpc = small_mpc(Linear(), states)
     assert not mpc.solve(torch.as_tensor(start)).feasible
-
-
-def test_mpc_solves_again_without_the_estimate_margin_before_giving_up():
-    """Where no sequence keeps rule 2's margin for estimates, the step is
-    solved once more with the rule as written; the margin stays set for the
-    next step."""
-    import dataclasses as dc
-
-    states = pulled_demo()
-    mpc = small_mpc(Linear(), states)
-    mpc.ctx = dc.replace(CTX, direction_margin_deg=5.0)
-    margins = []
-    once = mpc._solve_once
-
-    def only_without_margin(S, **kwargs):
-        margins.append(mpc.ctx.direction_margin_deg)
-        result = once(S, **kwargs)
-        if mpc.ctx.direction_margin_deg > 0:
-            result.feasible, result.action = False, torch.zeros(6)
-        return result
-
-    mpc._solve_once = only_without_margin
-    result = mpc.solve(torch.as_tensor(states[0]))
-    assert margins == [5.0, 0.0]
-    assert result.feasible and result.margin_dropped
-    assert mpc.ctx.direction_margin_deg == 5.0
-    margins.clear()
-    # Without a margin there is nothing to drop: one solve.
-    mpc.ctx = dc.replace(CTX, direction_margin_deg=0.0)
-    result = mpc.solve(torch.as_tensor(states[0]))
-    assert result.feasible and not result.margin_dropped
-    assert margins == [0.0]
 
 
 def test_demo_reward_system():

@@ -166,24 +166,12 @@ def test_rule_2_for_estimates_allows_for_hidden_hanging_corners(box):
     assert not bool(rule_violations(t, up, box.safety, estimated)["direction"])
 
 
-def test_only_the_controllers_rule_2_keeps_the_estimate_margin(box):
-    """safety.estimate_margin_deg narrows rule 2 in the controller's context
-    (estimated states), never in the one that scores the true cloth."""
-    import dataclasses as dc
-
-    scenario = dc.replace(box, safety=dc.replace(box.safety, estimate_margin_deg=7.0))
-    assert TaskSafetyContext(scenario).direction_margin_deg == 0.0
-    estimated = TaskSafetyContext(scenario, estimated=True)
-    assert estimated.direction_margin_deg == 7.0
-
-
 class FixedMpc:
     """Returns one object-frame action; records the frame pose it was given."""
 
     def __init__(self, action_O, done=False, ctx=None):
         self.action = torch.as_tensor(action_O, dtype=torch.float32)
         self.frames = []
-        self.on_object = []
         self.done = done
         self.config = types.SimpleNamespace(num_samples=1, horizon=2)
         self.noises = []
@@ -202,13 +190,10 @@ class FixedMpc:
         *,
         step,
         seed,
-        previous_progress,
         frame_pose=None,
-        cloth_on_object=False,
         noise=None,
     ):
         self.frames.append(np.array(frame_pose))
-        self.on_object.append(cloth_on_object)
         self.noises.append(noise)
         # A distinct noise distribution per step (mu = step, variance 0.5).
         carried = (torch.full((2, 6), float(step)), torch.full((2, 6), 0.5))
@@ -246,41 +231,6 @@ def test_mpc_controller_applies_object_frame_actions_in_the_turned_world():
         "release": 0.0,
     }
     assert dut.GetOutputPort("solve_ms").Eval(context)[0] >= 0
-
-
-def test_mpc_controller_remembers_the_cloth_seen_on_the_object():
-    """Where rule 2 allows for sides draped over the object, a cloth seen on
-    the object's top once is taken to stay there: a towel over the plate,
-    seen from the front, may show no keypoint on it in later frames."""
-    plate = SafetyContext(
-        edge_length=0.3,
-        workspace_lower=np.array([-0.45, -0.45, -0.01]),
-        workspace_upper=np.array([0.45, 0.45, 0.5]),
-        object_size=np.array([0.17, 0.01, 0.20]),
-        far_corners_may_drape=True,
-    )
-    in_front = flat(-0.45) + [0.0, 0.0, 0.05]
-    on_top = in_front.copy()
-    on_top[5] = [0.0, 0.0, 0.2]  # a keypoint on the plate's top edge
-    for ctx, expected in ((plate, [False, True, True]), (None, [False] * 3)):
-        mpc = FixedMpc(np.zeros(6), ctx=ctx)
-        dut = MpcController(
-            mpc=mpc, num_keypoints=8, period=DT, offset=0.0, step_cap=10
-        )
-        simulator = Simulator(dut)
-        context = simulator.get_mutable_context()
-        dut.GetInputPort("object_pose").FixValue(context, RigidTransform())
-        for k, S in enumerate((in_front, on_top, in_front)):
-            dut.GetInputPort("keypoints").FixValue(context, S.ravel())
-            simulator.AdvanceTo((k + 0.5) * DT)
-        assert mpc.on_object == expected
-        # A new episode (the context reset) forgets it.
-        simulator.get_mutable_context().SetTimeStateAndParametersFrom(
-            dut.CreateDefaultContext()
-        )
-        simulator.Initialize()
-        simulator.AdvanceTo(0.5 * DT)
-        assert mpc.on_object == [*expected, False]
 
 
 def test_mpc_controller_carries_the_noise_distribution_to_the_next_step():

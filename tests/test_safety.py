@@ -159,7 +159,7 @@ def test_each_rule_on_a_batch_of_samples_and_steps_equals_one_at_a_time():
         workspace_lower=CTX.workspace_lower,
         workspace_upper=CTX.workspace_upper,
         object_size=np.array([0.12, 0.08, 0.06]),
-        far_corners_may_drape=True,
+        far_corners_may_hang=True,
     )
     # The grippers 9 cm apart, at the box's front face and height, so that
     # every rule, the object's too, holds for some states and not others.
@@ -208,228 +208,6 @@ def _breaks_direction(S, A, cfg: SafetyConfig, ctx: SafetyContext) -> bool:
     return bool(out["direction"])
 
 
-def test_a_side_draped_over_the_object_hides_its_far_corner():
-    """A towel over a plate (hang, seed 0, trial 0, step 36): f_R puts the
-    left far corner s3 by the grasped edge, the true one hangs down the
-    plate's far side. Lowering the grippers towards the plate keeps rule 2
-    on the estimate and breaks it on the true cloth; allowing for a side
-    draped over the object refuses it."""
-    import dataclasses as dc
-
-    cfg = SafetyConfig(tau_d_deg=150.0)  # hang's
-    estimate = np.array(
-        [
-            [-0.096, -0.162, 0.232],  # s1
-            [0.004, -0.099, 0.191],
-            [0.094, -0.160, 0.230],  # s2
-            [-0.001, 0.029, 0.098],
-            [-0.047, 0.053, 0.082],  # s4
-            [-0.050, -0.026, 0.197],  # on the plate's top edge
-            [-0.041, -0.155, 0.167],  # s3, as f_R sees it
-            [-0.035, -0.160, 0.170],
-        ]
-    )
-    truth = estimate.copy()
-    truth[6] = [-0.107, 0.029, 0.042]
-    truth[4] = [0.058, 0.021, 0.088]
-    A = [-0.011, 0.0154, -0.024, 0.0071, 0.0067, -0.0234]
-    plate = PLATE
-    draped = dc.replace(plate, far_corners_may_drape=True)
-
-    def direction(S, ctx):
-        return _breaks_direction(S, A, cfg, ctx)
-
-    assert direction(truth, plate)
-    assert not direction(estimate, plate)
-    assert direction(estimate, draped)
-    # Carried high above the plate (nothing on its top) the side hangs
-    # below the gripper: the same move is allowed.
-    lifted = estimate + [0.0, 0.0, 0.15]
-    assert not direction(lifted, draped)
-    # The hypothesis is about hidden corners: it never passes a move the
-    # visible ones refuse.
-    assert direction(truth, dc.replace(plate, far_corners_may_drape=True))
-
-
-def test_a_towel_across_the_plate_is_draped_over_it():
-    """A towel over a plate (hang, seed 1, trial 4, step 48): the right far
-    corner s4 shows behind the plate, below its top, with the grippers in
-    front, so the cloth crosses over the plate although no keypoint lies on
-    its top; f_R puts the left far corner s3 2.4 cm from its gripper, the
-    true one hangs behind the plate. Allowing for the side draped over the
-    plate refuses the move that breaks rule 2 on the true cloth (172
-    degrees); with s4 in front of the plate the hypothesis does not apply."""
-    import dataclasses as dc
-
-    import torch
-
-    estimate = np.array(
-        [
-            [-0.097, -0.145, 0.133],  # s1
-            [0.015, -0.098, 0.108],
-            [0.106, -0.144, 0.122],  # s2
-            [0.068, -0.035, 0.185],
-            [0.005, 0.018, 0.120],  # s4, behind the plate
-            [-0.016, -0.073, 0.124],
-            [-0.102, -0.121, 0.133],  # s3, as f_R sees it
-            [-0.111, -0.074, 0.134],
-        ]
-    )
-    truth = estimate.copy()
-    truth[6] = [-0.091, 0.006, 0.050]
-    truth[4] = [0.104, 0.024, 0.088]
-    A = torch.tensor([-0.0006, 0.0053, -0.0031, 0.0027, 0.0089, 0.0062])
-    cfg = SafetyConfig(tau_d_deg=150.0)  # hang's
-    plate = PLATE
-    draped = dc.replace(plate, far_corners_may_drape=True)
-
-    def direction(S, ctx):
-        return _breaks_direction(S, A, cfg, ctx)
-
-    assert direction(truth, plate)
-    assert not direction(estimate, plate)
-    assert direction(estimate, draped)
-    in_front = estimate.copy()
-    in_front[4] = [0.005, -0.018, 0.120]
-    assert not direction(in_front, draped)
-
-
-def test_a_hidden_corner_is_judged_with_a_margin():
-    """A towel over a plate (hang, seed 0, trial 6, step 38): the right
-    gripper moves 2.8 cm towards the plate while its far corner s4 hangs
-    behind it (158 degrees on the true cloth, over hang's 150). The
-    estimated s4 lies on the plate's top edge, and the corner where a side
-    draped over the plate would put it is 144 degrees off the move: only
-    with the hidden-corner margin of 10 degrees is the move refused. The
-    margin never touches a corner that is judged as seen."""
-    import dataclasses as dc
-
-    import torch
-
-    estimate = np.array(
-        [
-            [-0.089, -0.133, 0.124],  # s1
-            [-0.040, -0.082, 0.129],
-            [0.120, -0.106, 0.136],  # s2
-            [0.077, -0.060, 0.127],
-            [0.060, -0.000, 0.208],  # s4, as f_R sees it
-            [-0.001, 0.012, 0.165],
-            [-0.094, -0.042, 0.129],  # s3
-            [-0.117, -0.021, 0.167],
-        ]
-    )
-    truth = estimate.copy()
-    truth[4] = [0.061, 0.014, 0.095]
-    truth[6] = [-0.118, 0.032, 0.053]
-    A = torch.tensor([-0.0266, 0.0238, -0.013, -0.0026, 0.0277, -0.0036])
-    plate = PLATE
-    hidden = dc.replace(plate, far_corners_may_hang=True, far_corners_may_drape=True)
-
-    def direction(S, ctx, margin):
-        cfg = SafetyConfig(tau_d_deg=150.0, hidden_corner_margin_deg=margin)
-        return _breaks_direction(S, A, cfg, ctx)
-
-    assert direction(truth, plate, 0.0)
-    assert not direction(estimate, plate, 10.0)  # as seen: no margin
-    assert not direction(estimate, hidden, 0.0)
-    assert direction(estimate, hidden, 10.0)
-    with pytest.raises(ValueError, match="hidden_corner_margin_deg"):
-        SafetyConfig(tau_d_deg=150.0, hidden_corner_margin_deg=150.0)
-
-
-def test_a_side_draped_beyond_the_plates_end_hangs_square_to_its_edge():
-    """A towel over a plate (hang, seed 1, trial 5, step 43): the left
-    gripper, 3 cm beyond the plate's end, moves towards the plate and down
-    while its far corner s3 hangs behind the plate beyond its end (151
-    degrees on the true cloth); f_R puts s3 by the gripper. A side draped
-    from the gripper to the nearest point of the plate's top ends at the
-    plate's end, 136 degrees off the move; the side square to the plate's
-    edge, from the gripper's own place along it, 147 degrees, over the
-    controller's 145 (tau_d less the estimate margin)."""
-    import dataclasses as dc
-
-    import torch
-    from fabric_imitation.learning.safety import _draped, _draped_straight
-
-    estimate = np.array(
-        [
-            [-0.115, -0.122, 0.110],  # s1
-            [-0.007, -0.072, 0.076],
-            [0.107, -0.126, 0.106],  # s2
-            [0.086, -0.006, 0.194],  # on the plate's top edge
-            [0.064, 0.004, 0.204],  # s4
-            [-0.029, -0.061, 0.083],
-            [-0.105, -0.118, 0.110],  # s3, as f_R sees it
-            [-0.119, -0.017, 0.144],
-        ]
-    )
-    truth = estimate.copy()
-    truth[6] = [-0.123, 0.012, 0.052]
-    truth[4] = [0.086, 0.013, 0.053]
-    A = torch.tensor([-0.0165, 0.026, -0.0264, -0.0102, 0.0073, -0.026])
-    cfg = SafetyConfig(tau_d_deg=150.0)  # hang's
-    plate = PLATE
-    controller = dc.replace(plate, far_corners_may_drape=True, direction_margin_deg=5)
-
-    def direction(S, ctx):
-        return _breaks_direction(S, A, cfg, ctx)
-
-    assert direction(truth, plate)
-    assert not direction(estimate, dc.replace(plate, direction_margin_deg=5))
-    assert direction(estimate, controller)
-    g = torch.as_tensor(estimate[0])
-    nearest, applies = _draped(g, controller)
-    square, applies_square = _draped_straight(g, controller)
-    assert bool(applies) and bool(applies_square)
-    assert abs(float(nearest[0]) - truth[6, 0]) > 0.03  # at the plate's end
-    assert abs(float(square[0]) - truth[6, 0]) < 0.01  # by the true corner
-    assert 0 < float(square[1]) < 0.02 and float(square[2]) < 0.1
-    # Far beyond the plate's end the side does not cross the plate.
-    beside = g.clone()
-    beside[0] = -0.40
-    assert not bool(_draped_straight(beside, controller)[1])
-
-
-def test_a_cloth_once_seen_on_the_object_is_judged_as_draped_over_it():
-    """A towel over a plate at the step cap (hang, seed 0, trial 3,
-    sampling seed 1, step 70): seen from the front, f_R puts every keypoint
-    in front of the plate and none on it; the grippers move 1.6 and 2.3 cm
-    towards the plate, 164 and 170 degrees off the true sides. The
-    controller, which saw the towel on the plate in earlier steps
-    (SafetyContext.cloth_on_object), judges the sides as draped over it and
-    refuses the move."""
-    import dataclasses as dc
-
-    import torch
-
-    estimate = np.array(
-        [
-            [-0.118, -0.098, 0.078],  # s1
-            [0.014, -0.064, 0.055],
-            [0.117, -0.102, 0.084],  # s2
-            [0.079, -0.044, 0.145],
-            [0.097, -0.094, 0.084],  # s4, as f_R sees it
-            [-0.003, -0.049, 0.051],
-            [-0.092, -0.093, 0.078],  # s3, as f_R sees it
-            [-0.123, -0.015, 0.147],
-        ]
-    )
-    truth = estimate.copy()
-    truth[6] = [-0.108, 0.002, 0.067]
-    truth[4] = [0.086, 0.027, 0.077]
-    A = torch.tensor([0.0043, 0.0159, 0.0018, -0.0061, 0.0222, -0.0055])
-    cfg = SafetyConfig(tau_d_deg=150.0)  # hang's
-    plate = PLATE
-    controller = dc.replace(plate, far_corners_may_drape=True, direction_margin_deg=5)
-
-    def direction(S, ctx):
-        return _breaks_direction(S, A, cfg, ctx)
-
-    assert direction(truth, plate)
-    assert not direction(estimate, controller)
-    assert direction(estimate, dc.replace(controller, cloth_on_object=True))
-
-
 def test_a_side_hanging_free_below_a_gripper_may_swing():
     """A towel carried 33 cm up behind the plate (hang, seed 2, trial 1,
     step 18): f_R puts the left far corner s3 up by the grippers, the true
@@ -458,7 +236,7 @@ def test_a_side_hanging_free_below_a_gripper_may_swing():
     truth[6] = [-0.152, 0.255, 0.061]
     A = torch.tensor([-0.0086, 0.0132, -0.0219, -0.0027, 0.016, 0.001])
     plate = PLATE
-    controller = dc.replace(plate, far_corners_may_hang=True, direction_margin_deg=5)
+    controller = dc.replace(plate, far_corners_may_hang=True)
 
     def direction(S, ctx, swing=10.0):
         cfg = SafetyConfig(tau_d_deg=150.0, hanging_swing_deg=swing)
@@ -470,30 +248,6 @@ def test_a_side_hanging_free_below_a_gripper_may_swing():
     assert not direction(estimate - [0.0, 0.0, 0.05], controller)
     with pytest.raises(ValueError, match="hanging_swing_deg"):
         SafetyConfig(hanging_swing_deg=90.0)
-
-
-def test_the_controller_keeps_a_margin_inside_rule_2_where_set():
-    """A move 97 degrees from s1 - s3 passes rule 2 (tau_d 100 degrees) on
-    the true cloth; the controller's view with `estimate_margin_deg` 5
-    refuses it, and scores of the true cloth (margin 0 in their context)
-    are untouched by the setting."""
-    import dataclasses as dc
-
-    import torch
-
-    angle = np.radians(97.0)
-    # s1 - s3 points to -y: a move at 97 degrees from it.
-    move = 0.02 * np.array([np.sin(angle), -np.cos(angle), 0.0])
-    A = torch.as_tensor(np.r_[move, 0.0, 0.0, 0.0])
-    S = torch.as_tensor(flat_state())
-    cfg = SafetyConfig(estimate_margin_deg=5.0)
-    estimated = dc.replace(CTX, direction_margin_deg=cfg.estimate_margin_deg)
-    assert not bool(rule_violations(S, A, cfg, CTX)["direction"])
-    assert bool(rule_violations(S, A, cfg, estimated)["direction"])
-    with pytest.raises(ValueError, match="estimate_margin_deg"):
-        SafetyConfig(estimate_margin_deg=-1.0)
-    with pytest.raises(ValueError, match="estimate_margin_deg"):
-        SafetyConfig(estimate_margin_deg=60.0, hidden_corner_margin_deg=50.0)
 
 
 def _demo_moving_at(angles_deg: list[float], m: int = 8) -> np.ndarray:

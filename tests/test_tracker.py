@@ -114,8 +114,8 @@ def test_tracked_demo_states_are_closer_to_the_truth_on_hang(hang):
 
     _, truth, priors, demo = hang
     scenario = LoadScenario(scenario_name="hang")
-    plain = DemoStates(priors, demo, scenario.reward)
-    tracked = DemoStates(priors, demo, scenario.reward, _Tracker(scenario, priors))
+    plain = DemoStates(priors, demo)
+    tracked = DemoStates(priors, demo, _Tracker(scenario, priors))
     truth_O = world_to_object(truth, demo.object_pose)
     e_plain = np.linalg.norm(plain - truth_O, axis=-1)[:, FAR]
     e_tracked = np.linalg.norm(tracked - truth_O, axis=-1)[:, FAR]
