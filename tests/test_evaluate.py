@@ -78,6 +78,7 @@ def test_an_evaluation_killed_mid_way_resumes_without_repeating_or_losing(tmp_pa
     import time
 
     from conftest import SmallCloth
+    from fabric_imitation.tools.evaluate import Machine
 
     out = tmp_path / "eval.jsonl"
     command = [
@@ -110,6 +111,8 @@ def test_an_evaluation_killed_mid_way_resumes_without_repeating_or_losing(tmp_pa
     rows = [json.loads(line) for line in out.read_text().splitlines()]
     assert out.read_text().splitlines()[: len(before)] == before  # kept as written
     assert sorted(r["trial"] for r in rows) == [0, 1, 2]  # none repeated, none lost
+    # Each line says which machine ran it (`compare` reads it).
+    assert {r["machine"]["id"] for r in rows} == {Machine()["id"]}
     summary = json.loads((tmp_path / "eval.jsonl.summary.json").read_text())
     assert summary["results"]["box"]["scripted"]["trials"] == 3
 

@@ -289,6 +289,26 @@ def test_compare_pairs_two_runs_on_the_same_poses(tmp_path):
     assert "| all | 5 | 2 | 4 | 2 / 2 / 0 / 1 | +40.0 pp" in text
 
 
+def test_compare_says_when_the_sides_ran_on_different_machines(tmp_path):
+    """Trial lines record their machine; where base and new ran on different
+    ones the comparison says so (and says nothing where they agree or a
+    side's lines predate the record)."""
+    from fabric_imitation.tools.report import Compare
+
+    def run(name, machine):
+        extra = {} if machine is None else {"machine": {"id": machine}}
+        rows = [_trial("ours", i, i % 2 == 0, **extra) for i in range(4)]
+        return _write(tmp_path / f"{name}.jsonl", rows)
+
+    out = tmp_path / "compare.md"
+    result = Compare(base=[run("a", "m1")], new=[run("b", "m2")], out=out)
+    assert result["machines"] == {"base": ["m1"], "new": ["m2"]}
+    assert "Machines: base m1, new m2." in out.read_text()
+    for base, new in (("m1", "m1"), (None, "m2")):
+        Compare(base=[run("a", base)], new=[run("b", new)], out=out)
+        assert "Machines:" not in out.read_text()
+
+
 def test_compare_refuses_a_trial_whose_pose_differs(tmp_path):
     from fabric_imitation.tools.report import Compare
 

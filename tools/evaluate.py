@@ -426,6 +426,44 @@ def CodeFingerprint() -> str:
     return _hash_files(files, root)
 
 
+# x86 vector extensions that change which floating-point code paths torch,
+# numpy and the cloth's compiled kernels take, most capable first.
+VECTOR_EXTENSIONS = ("avx512f", "avx2", "avx", "sse4_2")
+
+
+def Machine() -> dict:
+    """The machine a trial ran on, as far as its floating point goes: the
+    CPU model, the widest vector extension it has, torch's version, and a
+    short id of the three. The same seed gives the same trial on one
+    machine, idle or busy; on a CPU with other vector extensions the
+    sums round differently and trajectories part after a few steps, so
+    paired comparisons are run on one machine (`compare` says when the
+    sides differ)."""
+    import platform
+
+    import torch
+
+    model, flags = "", set()
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            key, _, value = line.partition(":")
+            if key.strip() == "model name" and not model:
+                model = value.strip()
+            elif key.strip() == "flags" and not flags:
+                flags = set(value.split())
+    except OSError:  # not Linux: the architecture only
+        pass
+    model = model or platform.processor() or platform.machine()
+    vector = next((v for v in VECTOR_EXTENSIONS if v in flags), platform.machine())
+    text = json.dumps([model, vector, torch.__version__])
+    return {
+        "cpu": model,
+        "vector": vector,
+        "torch": torch.__version__,
+        "id": hashlib.sha256(text.encode()).hexdigest()[:8],
+    }
+
+
 def TrialFingerprints(
     scenario_name: str,
     *,
@@ -537,6 +575,7 @@ def Evaluate(
     }
     _CheckResumable(resumed.values(), fingerprints, scenario_text, out)
     common = {
+        "machine": Machine(),
         "demo": str(demo) if demo else None,
         "priors": str(priors) if priors else None,
         "scenario_text": scenario_text,

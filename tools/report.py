@@ -759,6 +759,10 @@ def Compare(
             }
             for name, trials in sides.items()
         },
+        "machines": {
+            name: sorted({t.row["machine"]["id"] for t in trials if "machine" in t.row})
+            for name, trials in sides.items()
+        },
         "base_code": sides["base"][0]["fingerprint"]["code"],
         "new_code": sides["new"][0]["fingerprint"]["code"],
         "unpaired": {
@@ -824,6 +828,20 @@ def _check_same_trial(b: Trial, n: Trial) -> None:
             )
 
 
+def _machines_markdown(machines: dict) -> list[str]:
+    """A note where the two sides ran on different machines (trial lines'
+    `machine` id; lines written before it was recorded say nothing)."""
+    base, new = machines["base"], machines["new"]
+    if not base or not new or (base == new and len(base) == 1):
+        return []
+    return [
+        "",
+        f"Machines: base {', '.join(base)}, new {', '.join(new)}. On another "
+        "CPU the same seed rounds differently and trajectories part, so the "
+        "pairs differ by the machine as well as by the change.",
+    ]
+
+
 def _compare_markdown(result: dict) -> str:
     command = " ".join(
         [
@@ -842,6 +860,7 @@ def _compare_markdown(result: dict) -> str:
         f"`{result['method']}`, on violation `{result['on_violation']}`, pose "
         f"seeds {', '.join(map(str, result['pose_seeds']))}; code "
         f"`{result['base_code']}` (base) against `{result['new_code']}` (new).",
+        *_machines_markdown(result["machines"]),
         "",
         "| task | pairs | base | new | both / new only / base only / neither "
         "| difference (new - base) | 95 % interval | McNemar p | rule breaks "
