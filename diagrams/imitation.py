@@ -395,6 +395,7 @@ def _KeypointEstimator(
         period=scenario.motion.step_seconds,
         offset=start,
         tracker=_Tracker(scenario, priors),
+        grasped_from_grippers=scenario.tracker.grasped_from_grippers,
     )
 
 

@@ -60,6 +60,13 @@ class TrackerConfig:
     # 0.6 cm, and is further off on box_big (1.74 cm against f_R's 1.57).
     process_noise: float = 0.026
 
+    # The controller's grasped corners s1, s2 are the measured gripper
+    # positions (where the grippers hold them) instead of f_R's reading of
+    # the frame; the grippers' measured move drives the prediction either
+    # way. False: s1, s2 are estimated like every other keypoint (the
+    # paper's states come from f_R alone).
+    grasped_from_grippers: bool = True
+
     # Put predicted keypoints that lie inside the task object on its
     # nearest face (f_D learned no contact). Off: on the shipped demos'
     # frames the mean errors with and without it agree to 0.01 cm (`bench

@@ -82,7 +82,7 @@ class KeypointEstimator(LeafSystem):
     The grasped corners s1, s2 are where the grippers hold them, so when the
     optional ``grippers`` input is connected they are taken from it (the
     robot's own measurement) instead of from the image, where a corner can
-    hide under the cloth.
+    hide under the cloth, unless ``grasped_from_grippers`` is false.
 
     With a ``tracker`` (learning/tracker.py), the ``keypoints`` output is
     f_R's reading fused with f_D's prediction from the previous estimate and
@@ -112,10 +112,12 @@ class KeypointEstimator(LeafSystem):
         period: float,
         offset: float = 0.0,
         tracker: KeypointTracker | None = None,
+        grasped_from_grippers: bool = True,
     ):
         super().__init__()
         self._priors = priors
         self._tracker = tracker
+        self._grasped_from_grippers = grasped_from_grippers
         if tracker is not None and tracker.num_keypoints != num_keypoints:
             raise ValueError(
                 f"the tracker has {tracker.num_keypoints} keypoints, the "
@@ -149,7 +151,8 @@ class KeypointEstimator(LeafSystem):
         grippers = None
         if self._grippers.HasValue(context):
             grippers = self._grippers.Eval(context).reshape(2, 3)
-            p_W[self._corners] = grippers
+            if self._grasped_from_grippers:
+                p_W[self._corners] = grippers
         pose = PlanarPose.FromRigidTransform(self._pose.Eval(context))
         p_O = world_to_object(p_W, pose)
         if self._tracker is not None:
@@ -186,6 +189,8 @@ class KeypointEstimator(LeafSystem):
             discrete_state.get_mutable_vector(self._last_grippers).SetFromVector(
                 grippers.ravel()
             )
+        if not self._grasped_from_grippers:
+            grasped = None
         x, v = self._tracker.step(previous, p_O, spread, action=action, grasped=grasped)
         discrete_state.get_mutable_vector(self._variance).SetFromVector(v)
         discrete_state.get_mutable_vector(self._last_pose).SetFromVector(

@@ -286,6 +286,34 @@ def test_estimator_tracks_with_the_grippers_measured_move():
     np.testing.assert_allclose(again[4:], start_O[4:] + [0.0, 0.0, 0.08], atol=1e-9)
 
 
+def test_grasped_corners_from_f_r_where_switched_off():
+    """With `grasped_from_grippers` false, s1 and s2 are f_R's reading fused
+    with the prediction like every other keypoint (the grippers' move still
+    drives the prediction); with it, they are the measured grippers."""
+    start = square(0.0, 0.2)
+    grippers = start[GRASPED] + [[0.0, 0.02, 0.0], [0.0, 0.0, 0.0]]
+    seen = start + [0.0, 0.0, 0.01]  # f_R 1 cm up, everywhere, sharp
+    for from_grippers in (True, False):
+        priors = SpreadPriors(start, np.full(M, 3.0))
+        tracker = KeypointTracker(
+            forward=left_forward, num_keypoints=M, config=TrackerConfig()
+        )
+        dut, context = _estimator(
+            priors, tracker=tracker, grasped_from_grippers=from_grippers
+        )
+        dut.GetInputPort("object_pose").FixValue(context, RigidTransform())
+        _update(dut, context, start[GRASPED])
+        priors.points = seen
+        second = _update(dut, context, grippers)
+        if from_grippers:
+            np.testing.assert_allclose(second[GRASPED], grippers, atol=1e-9)
+        else:
+            predicted = start[GRASPED] + [0.0, 0.02, 0.0]
+            # Between the prediction and f_R's reading, neither exactly.
+            assert np.all(np.abs(second[GRASPED] - predicted).max(-1) > 1e-4)
+            assert np.all(np.abs(second[GRASPED] - seen[GRASPED]).max(-1) > 1e-4)
+
+
 def test_estimator_without_grippers_gives_f_r_reading():
     """No grippers input: no move to predict with, so each update is f_R's
     reading as it is."""
