@@ -48,12 +48,10 @@ class SafetyConfig:
     # are always scored without it.
     hidden_corners_hang: bool = True
     # ... and, where a grasped corner is higher above the surface under it
-    # than the side is long, with the side hanging free below it, its far
-    # corner anywhere within this angle [deg] of straight below (a towel
-    # swings as it is carried): f_R, seeing the towel from above, puts the
-    # far corner up by the grippers, where a move down and back looks safe
-    # but points far off the true side. 0: straight below only.
-    hanging_swing_deg: float = 10.0
+    # than the side is long, with the side hanging straight below it: f_R,
+    # seeing the towel from above, puts the far corner up by the grippers,
+    # where a move down and back looks safe but points far off the true
+    # side.
 
     def __post_init__(self):
         if not 0 < self.tau_c < self.tau_f:
@@ -69,11 +67,6 @@ class SafetyConfig:
             raise ValueError(
                 "safety.tau_d_demo_margin_deg must be in [0, 90), got "
                 f"{self.tau_d_demo_margin_deg}"
-            )
-        if not 0 <= self.hanging_swing_deg < 90:
-            raise ValueError(
-                "safety.hanging_swing_deg must be in [0, 90), got "
-                f"{self.hanging_swing_deg}"
             )
         if self.max_step <= 0:
             raise ValueError(f"safety.max_step must be positive, got {self.max_step}")
@@ -137,9 +130,8 @@ class SafetyContext:
     # high. Rule 2 is then also judged with each far corner dropped halfway
     # and all the way to the surface below it (table or object top), and,
     # where a grasped corner is higher above that surface than the side is
-    # long, with the side hanging free below it (SafetyConfig.
-    # hanging_swing_deg), so an action passes only if it passes wherever
-    # the corner may hang.
+    # long, with the side hanging straight below it, so an action passes
+    # only if it passes wherever the corner may hang.
     far_corners_may_hang: bool = False
     # Rest length [m] of the sides s1-s3 and s2-s4 (None: edge_length).
     side_length: float | None = None
@@ -196,18 +188,14 @@ def rule_violations(
                 | bad_direction(a_l, s1 - s3d)
                 | bad_direction(a_r, s2 - s4d)
             )
-        # A side hanging free: its far corner within the swing of straight
-        # below the gripper, so the edge points within it of straight up.
-        swing = limit - config.hanging_swing_deg
-        cos_swing = math.cos(math.radians(max(swing, 0.0)))
+        # A side hanging free: its far corner straight below the gripper, so
+        # the edge points straight up.
         side = ctx.side_length or ctx.edge_length
         up = torch.tensor([0.0, 0.0, 1.0], dtype=S.dtype)
         for a, g in ((a_l, s1), (a_r, s2)):
             free = g[..., 2] - _dropped(g, 1.0, ctx)[..., 2] >= side
             if free.any():  # rarely: the rollouts' grippers are low
-                out["direction"] = out["direction"] | (
-                    free & bad_direction(a, up, cos_swing)
-                )
+                out["direction"] = out["direction"] | (free & bad_direction(a, up))
     grippers = torch.stack([s1n, s2n], -2)
     out["workspace"] = _outside_workspace(S, A, S_next, grippers, ctx)
     if ctx.object_size is not None:

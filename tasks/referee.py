@@ -74,7 +74,6 @@ class RefereeRules:
             object_margin=self.object_margin,
             max_step=self.max_step,
             hidden_corners_hang=False,
-            hanging_swing_deg=0.0,
         )
 
     def fingerprint(self) -> str:

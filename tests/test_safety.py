@@ -208,14 +208,15 @@ def _breaks_direction(S, A, cfg: SafetyConfig, ctx: SafetyContext) -> bool:
     return bool(out["direction"])
 
 
-def test_a_side_hanging_free_below_a_gripper_may_swing():
+def test_a_side_hanging_free_below_a_gripper_hangs_straight_down():
     """A towel carried 33 cm up behind the plate (hang, seed 2, trial 1,
     step 18): f_R puts the left far corner s3 up by the grippers, the true
     one hangs 4.6 cm behind the plumb line, 6 cm over the table. The left
     gripper moves 2.7 cm down and back: 153 degrees off the true side, 145
-    off straight up. Judged with the side hanging within hanging_swing_deg
-    of straight below, the move is refused; held lower than the side is
-    long (the towel partly on the table), the hypothesis does not apply."""
+    off straight up. With tau_D 140 degrees the controller, judging the side
+    as hanging straight below the gripper, refuses it; at 150 it passes;
+    held lower than the side is long (the towel partly on the table), the
+    hypothesis does not apply."""
     import dataclasses as dc
 
     import torch
@@ -238,16 +239,14 @@ def test_a_side_hanging_free_below_a_gripper_may_swing():
     plate = PLATE
     controller = dc.replace(plate, far_corners_may_hang=True)
 
-    def direction(S, ctx, swing=10.0):
-        cfg = SafetyConfig(tau_d_deg=150.0, hanging_swing_deg=swing)
-        return _breaks_direction(S, A, cfg, ctx)
+    def direction(S, ctx, tau_d=140.0):
+        return _breaks_direction(S, A, SafetyConfig(tau_d_deg=tau_d), ctx)
 
-    assert direction(truth, plate)
+    assert direction(truth, plate, 150.0)
+    assert not direction(estimate, plate)  # as f_R sees it, the move looks safe
     assert direction(estimate, controller)
-    assert not direction(estimate, controller, swing=0.0)  # plumb: 145 degrees
+    assert not direction(estimate, controller, 150.0)
     assert not direction(estimate - [0.0, 0.0, 0.05], controller)
-    with pytest.raises(ValueError, match="hanging_swing_deg"):
-        SafetyConfig(hanging_swing_deg=90.0)
 
 
 def _demo_moving_at(angles_deg: list[float], m: int = 8) -> np.ndarray:
