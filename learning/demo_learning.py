@@ -20,7 +20,6 @@ from fabric_imitation.learning import models as models_module
 from fabric_imitation.learning.cache import cache_dir, read_torch, write_torch
 from fabric_imitation.learning.models import Mlp
 from fabric_imitation.learning.polygon import iou_pairs
-from fabric_imitation.learning.state import corner_indices
 
 
 @dc.dataclass
@@ -151,9 +150,6 @@ class DemoModel:
         self.config = config
         self.polygons = self.states[..., :2]
         self.centres = self.polygons.mean(-2)
-        idx = corner_indices(self.states.shape[-2])
-        # Keypoint indices of the grasped corners s1, s2.
-        self.grasped = [idx["s1"], idx["s2"]]
 
     def similarity(self, S: torch.Tensor, window: tuple[int, int] | None = None):
         """IoU (..., W) of the top-down polygons of S with demo states

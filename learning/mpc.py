@@ -144,10 +144,6 @@ class Mpc:
         X = torch.zeros(cfg.num_samples, cfg.horizon, 6)
         self.rollout(S, X, self._window(0))
 
-    def _predict(self, s: torch.Tensor, a: torch.Tensor) -> torch.Tensor:
-        """f_D(s, a), in the object frame."""
-        return self.dynamics.forward(s, a)
-
     def _clip(self, A: torch.Tensor) -> torch.Tensor:
         b = self.safety.max_step
         return A.clamp(-b, b)
@@ -169,13 +165,13 @@ class Mpc:
             goal = self.subgoal(s, window, i)
             a = self.dynamics.inverse(s, goal)
             a = self._clip(a)
-            nxt = self._predict(s, a)
+            nxt = self.dynamics.forward(s, a)
             repair = cfg.use_cost and cfg.repair_prior
             if repair and not bool(
                 valid_actions(s, a, self.safety, self.ctx, S_next=nxt)
             ):
                 a = self._nearest_valid(s, a, gen)
-                nxt = self._predict(s, a)
+                nxt = self.dynamics.forward(s, a)
             out.append(a[0])
             s = nxt
         return torch.stack(out)
@@ -202,7 +198,7 @@ class Mpc:
         noise = torch.randn(cfg.prior_candidates, 6, generator=gen)
         cand = self._clip(torch.cat([torch.zeros_like(a), a + cfg.sigma0 * noise]))
         ss = s.expand(len(cand), *s.shape[1:])
-        nxt = self._predict(ss, cand)
+        nxt = self.dynamics.forward(ss, cand)
         ok = valid_actions(ss, cand, self.safety, self.ctx, S_next=nxt)
         if not ok.any():
             return torch.zeros_like(a)
@@ -216,7 +212,7 @@ class Mpc:
         s = S.expand(len(X), *S.shape)
         out = [s]
         for k in range(self.config.horizon):
-            s = self._predict(s, X[:, k])
+            s = self.dynamics.forward(s, X[:, k])
             out.append(s)
         return torch.stack(out)
 
@@ -299,7 +295,9 @@ class Mpc:
         if not cfg.use_mpc:
             a = prior[0]
             ok = bool(
-                valid_actions(S, a, self.safety, self.ctx, S_next=self._predict(S, a))
+                valid_actions(
+                    S, a, self.safety, self.ctx, S_next=self.dynamics.forward(S, a)
+                )
             )
             return MpcResult(
                 a, ok or not cfg.use_cost, 0, float("nan"), J0, time.perf_counter() - t0

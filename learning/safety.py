@@ -169,13 +169,12 @@ def rule_violations(
     d = (s1n - s2n).norm(dim=-1)
     L = ctx.edge_length
     out["distance"] = (d <= config.tau_c * L) | (d >= config.tau_f * L)
-    limit = config.tau_d_deg
-    cos_max = math.cos(math.radians(limit))
+    cos_max = math.cos(math.radians(config.tau_d_deg))
 
-    def bad_direction(a, edge, cos_limit=cos_max):
+    def bad_direction(a, edge):
         na, ne = a.norm(dim=-1), edge.norm(dim=-1)
         cos = (a * edge).sum(-1) / (na * ne).clamp_min(1e-12)
-        return (na > config.min_move) & (cos <= cos_limit)
+        return (na > config.min_move) & (cos <= cos_max)
 
     out["direction"] = bad_direction(a_l, s1 - s3) | bad_direction(a_r, s2 - s4)
     if ctx.far_corners_may_hang:

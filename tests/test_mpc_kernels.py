@@ -166,7 +166,7 @@ def test_batched_rollout_matches_the_step_by_step_reference():
     broken = {rule: torch.zeros(len(X), dtype=torch.bool) for rule in RULES}
     visited = []
     for k in range(4):
-        s_next = mpc._predict(s, X[:, k])
+        s_next = mpc.dynamics.forward(s, X[:, k])
         v = rule_violations(s, X[:, k], mpc.safety, mpc.ctx, S_next=s_next)
         bad = torch.zeros(len(X), dtype=torch.bool)
         for rule in RULES:
