@@ -70,6 +70,10 @@ class MpcConfig:
     # Off: with the cap at 40 it converged in 94-97 % of steps but lost 19
     # points of success at development seeds (docs/development.md).
     warm_start: bool = False
+    # The rollouts' rewards compare the predicted states with h + 1 demo
+    # states from J - 1 (J: the progress of the state now), so every step has
+    # the same tensor shapes; false: with the whole demo, as the paper's J.
+    rollout_window: bool = True
 
     def __post_init__(self):
         if self.num_samples < 1 or self.horizon < 1:
@@ -128,7 +132,9 @@ class Mpc:
     def _window(self, J: int) -> tuple[int, int]:
         """Demo states the rollouts are compared with: from J - 1 on, a fixed
         number (h + 1, fewer only for a shorter demo) so every step has the
-        same tensor shapes."""
+        same tensor shapes; all of them without `rollout_window`."""
+        if not self.config.rollout_window:
+            return 0, self.demo.T
         width = min(self.demo.T, self.config.horizon + 1)
         lo = min(max(0, J - 1), self.demo.T - width)
         return lo, lo + width

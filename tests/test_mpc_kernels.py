@@ -185,6 +185,20 @@ def test_batched_rollout_matches_the_step_by_step_reference():
     assert mpc.blocking_rules(S, X) == {k: int(b.sum()) for k, b in broken.items()}
 
 
+def test_the_rollout_window_is_h_plus_one_demo_states_from_j_minus_one():
+    mpc = make_mpc()  # demo of 8 states, h = 4
+    assert mpc._window(0) == (0, 5)
+    assert mpc._window(3) == (2, 7)
+    assert mpc._window(7) == (3, 8)  # never past the demo's end
+    mpc.config = dc.replace(mpc.config, rollout_window=False)
+    assert mpc._window(3) == (0, 8)  # the whole demo
+    S = torch.as_tensor(cloth(0.05, z=0.02))
+    X = torch.zeros(10, 4, 6)
+    reward, _ = mpc.rollout(S, X, mpc._window(3))
+    r, _ = mpc.demo.reward(S.expand(4, 10, *S.shape))
+    assert torch.allclose(reward, (0.9 ** torch.arange(4.0)[:, None] * r).sum(0))
+
+
 def _warm(mpc, **config):
     mpc.config = dc.replace(mpc.config, warm_start=True, **config)
     return mpc
