@@ -173,12 +173,8 @@ def PrepareImitation(
         raise InputError(f"priors {priors_dir} carry no prior states for f_A")
     states = DemoStates(priors, demo, _Tracker(scenario, priors))
     model, info = learn_from_demo(states, priors.prior_states, scenario.reward)
-    safety = scenario.safety.for_demo(states, scenario.cloth.size[0])
-    info = {
-        **info,
-        "tau_d_deg": round(safety.tau_d_deg, 2),
-        "tau_c": round(safety.tau_c, 3),
-    }
+    safety = scenario.safety.for_demo(states)
+    info = {**info, "tau_d_deg": round(safety.tau_d_deg, 2)}
     nets = None
     if baselines:
         from fabric_imitation.learning.baselines import (

@@ -28,13 +28,6 @@ class SafetyConfig:
     # little more; tau_d_deg is then not used.
     tau_d_from_demo: bool = True
     tau_d_demo_margin_deg: float = 0.0
-    # Rule 1's lower threshold comes from the demo too: the smallest
-    # |s1 - s2| / L the demo holds (`demo_distance_ratio` on the demo's
-    # estimated states) less tau_c_demo_margin, where that is above tau_c;
-    # a grasped edge let slacker than the demo's sags onto what the demo
-    # carried it over.
-    tau_c_from_demo: bool = False
-    tau_c_demo_margin: float = 0.05
     # Moves shorter than this [m] have no direction: rule 2 passes them.
     min_move: float = 0.002
     # Rule 4: grippers stay this far [m] outside the object's box.
@@ -75,46 +68,19 @@ class SafetyConfig:
                 "safety.tau_d_demo_margin_deg must be in [0, 90), got "
                 f"{self.tau_d_demo_margin_deg}"
             )
-        if not 0 <= self.tau_c_demo_margin < 1:
-            raise ValueError(
-                "safety.tau_c_demo_margin must be in [0, 1), got "
-                f"{self.tau_c_demo_margin}"
-            )
         if self.max_step <= 0:
             raise ValueError(f"safety.max_step must be positive, got {self.max_step}")
 
-    def for_demo(self, demo_states: np.ndarray, edge_length: float) -> "SafetyConfig":
+    def for_demo(self, demo_states: np.ndarray) -> "SafetyConfig":
         """These rules for imitating the demo whose states (T, M, 3) are
-        given, L = `edge_length` [m]: with tau_d_from_demo, rule 2's
-        threshold is the demo's largest move-to-side angle plus the margin
-        (at most 180 degrees); with tau_c_from_demo, rule 1's lower one is
-        the demo's smallest |s1 - s2| / L less the margin (at least tau_c,
-        below tau_f)."""
-        out = self
-        if self.tau_d_from_demo:
-            angle = demo_direction_angle(demo_states, self.min_move)
-            out = dc.replace(
-                out, tau_d_deg=min(180.0, angle + self.tau_d_demo_margin_deg)
-            )
-        if self.tau_c_from_demo:
-            ratio = demo_distance_ratio(demo_states, edge_length)
-            tau_c = max(self.tau_c, ratio - self.tau_c_demo_margin)
-            out = dc.replace(out, tau_c=min(tau_c, 0.95 * self.tau_f))
-        return out
-
-
-def demo_distance_ratio(states: np.ndarray, edge_length: float) -> float:
-    """The smallest |s1 - s2| / L the demo holds (L = `edge_length`): rule
-    1's measure of the demo itself, each frame's the median of it and its
-    neighbours' (three consecutive frames), since a frame in which f_R
-    misreads a grasped corner spikes one frame's distance."""
-    S = np.asarray(states, dtype=np.float64)
-    idx = corner_indices(S.shape[-2])
-    d = np.linalg.norm(S[:, idx["s1"]] - S[:, idx["s2"]], axis=-1) / edge_length
-    if len(d) < 3:
-        return float(d.min())
-    smooth = [np.median(d[max(t - 1, 0) : t + 2]) for t in range(len(d))]
-    return float(min(smooth))
+        given: with tau_d_from_demo, rule 2's threshold is the demo's largest
+        move-to-side angle plus the margin (at most 180 degrees)."""
+        if not self.tau_d_from_demo:
+            return self
+        angle = demo_direction_angle(demo_states, self.min_move)
+        return dc.replace(
+            self, tau_d_deg=min(180.0, angle + self.tau_d_demo_margin_deg)
+        )
 
 
 def demo_direction_angle(states: np.ndarray, min_move: float) -> float:

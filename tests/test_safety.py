@@ -6,7 +6,6 @@ from fabric_imitation.learning.safety import (
     SafetyConfig,
     SafetyContext,
     demo_direction_angle,
-    demo_distance_ratio,
     rule_violations,
     valid_actions_np,
 )
@@ -273,31 +272,10 @@ def test_rule_2_threshold_from_the_demo_ignores_one_misread_frame():
     demo = _demo_moving_at([10.0, 120.0, 120.0, 30.0, 170.0, 40.0, 20.0])
     assert demo_direction_angle(demo, 0.002) == pytest.approx(120.0, abs=1e-6)
     config = SafetyConfig(tau_d_demo_margin_deg=5.0)
-    assert config.for_demo(demo, 0.2).tau_d_deg == pytest.approx(125.0, abs=1e-6)
+    assert config.for_demo(demo).tau_d_deg == pytest.approx(125.0, abs=1e-6)
     fixed = SafetyConfig(tau_d_deg=100.0, tau_d_from_demo=False)
-    assert fixed.for_demo(demo, 0.2).tau_d_deg == 100.0
+    assert fixed.for_demo(demo).tau_d_deg == 100.0
     # Moves too short to have a direction say nothing.
     assert demo_direction_angle(demo, 0.02) == 0.0
     with pytest.raises(ValueError, match="tau_d_demo_margin_deg"):
         SafetyConfig(tau_d_demo_margin_deg=-1.0)
-
-
-def test_rule_1_threshold_from_the_demo_ignores_one_misread_frame():
-    # The grasped corners held 0.3 apart, then 0.27 for two frames, with one
-    # frame misread at 0.15; L = 0.3.
-    idx = corner_indices(8)
-    widths = [0.3, 0.3, 0.27, 0.27, 0.15, 0.28, 0.3]
-    demo = np.zeros((len(widths), 8, 3))
-    for t, w in enumerate(widths):
-        demo[t, idx["s1"]] = [-w / 2, 0.0, 0.1]
-        demo[t, idx["s2"]] = [w / 2, 0.0, 0.1]
-    assert demo_distance_ratio(demo, 0.3) == pytest.approx(0.9, abs=1e-6)
-    config = SafetyConfig(tau_c_from_demo=True, tau_c_demo_margin=0.05)
-    assert config.for_demo(demo, 0.3).tau_c == pytest.approx(0.85, abs=1e-6)
-    # Never below the given tau_c, and off by default.
-    assert (
-        SafetyConfig(tau_c=0.9, tau_c_from_demo=True).for_demo(demo, 0.3).tau_c == 0.9
-    )
-    assert SafetyConfig().for_demo(demo, 0.3).tau_c == 0.5
-    with pytest.raises(ValueError, match="tau_c_demo_margin"):
-        SafetyConfig(tau_c_demo_margin=-0.1)
