@@ -336,11 +336,11 @@ class TcnMpc(Mpc):
         self._step = step
         return min(step, self.demo.T - 1)
 
-    def subgoal(self, s, i):
+    def subgoal(self, s, window, i):
         return self._aligned(i)[None].expand(len(s), -1, -1)
 
     @torch.no_grad()
-    def rollout(self, S, X):
+    def rollout(self, S, X, window):
         cfg = self.config
         states = self._predicted_states(S, X)
         reward = torch.zeros(len(X))

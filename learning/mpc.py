@@ -70,6 +70,10 @@ class MpcConfig:
     # Off: with the cap at 40 it converged in 94-97 % of steps but lost 19
     # points of success at development seeds (docs/development.md).
     warm_start: bool = False
+    # The rollouts' rewards compare the predicted states with h + 1 demo
+    # states from J - 1 (J: the progress of the state now), so every step has
+    # the same tensor shapes; false: with the whole demo, as the paper's J.
+    rollout_window: bool = True
 
     def __post_init__(self):
         if self.num_samples < 1 or self.horizon < 1:
@@ -125,6 +129,16 @@ class Mpc:
         self.ctx = safety_ctx
         self.config = config
 
+    def _window(self, J: int) -> tuple[int, int]:
+        """Demo states the rollouts are compared with: from J - 1 on, a fixed
+        number (h + 1, fewer only for a shorter demo) so every step has the
+        same tensor shapes; all of them without `rollout_window`."""
+        if not self.config.rollout_window:
+            return 0, self.demo.T
+        width = min(self.demo.T, self.config.horizon + 1)
+        lo = min(max(0, J - 1), self.demo.T - width)
+        return lo, lo + width
+
     @torch.no_grad()
     def WarmUp(self, S) -> None:
         """Runs one rollout of the real size so that the IoU kernel is built
@@ -134,14 +148,16 @@ class Mpc:
         polygon_kernel.load()  # even where no sequence below gets scored
         S = torch.as_tensor(S, dtype=torch.float32)
         X = torch.zeros(cfg.num_samples, cfg.horizon, 6)
-        self.rollout(S, X)
+        self.rollout(S, X, self._window(0))
 
     def _clip(self, A: torch.Tensor) -> torch.Tensor:
         b = self.safety.max_step
         return A.clamp(-b, b)
 
     @torch.no_grad()
-    def action_prior(self, S: torch.Tensor, gen: torch.Generator | None = None):
+    def action_prior(
+        self, S: torch.Tensor, gen: torch.Generator | None = None, window=None
+    ):
         """(h, 6): iterate f_I towards the subgoal of the imagined state, f_D.
 
         A prior action that breaks a rule is replaced by the nearest valid one
@@ -152,7 +168,7 @@ class Mpc:
         out = []
         s = S[None]
         for i in range(cfg.horizon):
-            goal = self.subgoal(s, i)
+            goal = self.subgoal(s, window, i)
             a = self.dynamics.inverse(s, goal)
             a = self._clip(a)
             nxt = self.dynamics.forward(s, a)
@@ -166,11 +182,11 @@ class Mpc:
             s = nxt
         return torch.stack(out)
 
-    def subgoal(self, s: torch.Tensor, i: int) -> torch.Tensor:
+    def subgoal(self, s: torch.Tensor, window, i: int) -> torch.Tensor:
         """The demo state (B, M, 3) the action prior heads for from the
         imagined states s (B, M, 3) at horizon step i: the one after the
         progress J of s."""
-        J, _ = self.demo.progress(s)
+        J, _ = self.demo.progress(s, window)
         return self.demo.states[(J + 1).clamp(max=self.demo.T - 1)]
 
     def current_progress(self, S, step: int) -> int:
@@ -222,7 +238,7 @@ class Mpc:
         return bad.sum(0).float()
 
     @torch.no_grad()
-    def rollout(self, S: torch.Tensor, X: torch.Tensor):
+    def rollout(self, S: torch.Tensor, X: torch.Tensor, window):
         """Discounted rewards (N,) and violation counts (N,) of sequences X.
 
         With the constraint cost on, only sequences that break no rule are
@@ -234,7 +250,7 @@ class Mpc:
         reward = torch.full((len(X),), -float("inf"))
         if scored.any():
             # One batched reward call for all the h * n predicted states.
-            r, _ = self.demo.reward(states[1:, scored])  # (h, n)
+            r, _ = self.demo.reward(states[1:, scored], window)  # (h, n)
             discount = cfg.gamma ** torch.arange(cfg.horizon, dtype=r.dtype)
             reward[scored] = (discount[:, None] * r).sum(0)
         return reward, cost
@@ -275,9 +291,10 @@ class Mpc:
         )
         S = torch.as_tensor(S, dtype=torch.float32)
         J0 = self.current_progress(S, step)
+        window = self._window(J0)
         gen = torch.Generator().manual_seed(seed * 100003 + step)
         prior = (
-            self.action_prior(S, gen)
+            self.action_prior(S, gen, window)
             if cfg.use_prior or not cfg.use_mpc
             else torch.zeros(cfg.horizon, 6)
         )
@@ -311,7 +328,7 @@ class Mpc:
             eps[0] = mu  # the mean itself is always a candidate
             X = self._clip(prior + eps)
             eps = X - prior
-            reward, cost = self.rollout(S, X)
+            reward, cost = self.rollout(S, X, window)
             feasible = cost == 0 if cfg.use_cost else torch.ones_like(cost, dtype=bool)
             if feasible.any():
                 r = torch.where(

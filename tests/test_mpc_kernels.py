@@ -158,7 +158,8 @@ def test_batched_rollout_matches_the_step_by_step_reference():
     g = torch.Generator().manual_seed(0)
     pull = torch.tensor([0.0, -0.02, 0.0, 0.0, -0.02, 0.0])
     X = mpc._clip(pull + 0.01 * torch.randn(300, 4, 6, generator=g))
-    reward, cost = mpc.rollout(S, X)
+    window = mpc._window(1)
+    reward, cost = mpc.rollout(S, X, window)
     # Reference: the rules one horizon step at a time, every sequence scored.
     s = S.expand(len(X), *S.shape)
     ref_cost = torch.zeros(len(X))
@@ -174,7 +175,7 @@ def test_batched_rollout_matches_the_step_by_step_reference():
         ref_cost += bad.float()
         visited.append(s_next)
         s = s_next
-    r, _ = mpc.demo.reward(torch.stack(visited))
+    r, _ = mpc.demo.reward(torch.stack(visited), window)
     ref_reward = (0.9 ** torch.arange(4.0)[:, None] * r).sum(0)
     assert torch.equal(cost, ref_cost)
     feasible = cost == 0
@@ -184,11 +185,16 @@ def test_batched_rollout_matches_the_step_by_step_reference():
     assert mpc.blocking_rules(S, X) == {k: int(b.sum()) for k, b in broken.items()}
 
 
-def test_the_rollouts_are_scored_against_the_whole_demo():
+def test_the_rollout_window_is_h_plus_one_demo_states_from_j_minus_one():
     mpc = make_mpc()  # demo of 8 states, h = 4
+    assert mpc._window(0) == (0, 5)
+    assert mpc._window(3) == (2, 7)
+    assert mpc._window(7) == (3, 8)  # never past the demo's end
+    mpc.config = dc.replace(mpc.config, rollout_window=False)
+    assert mpc._window(3) == (0, 8)  # the whole demo
     S = torch.as_tensor(cloth(0.05, z=0.02))
     X = torch.zeros(10, 4, 6)
-    reward, _ = mpc.rollout(S, X)
+    reward, _ = mpc.rollout(S, X, mpc._window(3))
     r, _ = mpc.demo.reward(S.expand(4, 10, *S.shape))
     assert torch.allclose(reward, (0.9 ** torch.arange(4.0)[:, None] * r).sum(0))
 
