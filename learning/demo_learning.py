@@ -9,7 +9,6 @@ the final state S_E[T - 1].
 import copy
 import dataclasses as dc
 import hashlib
-import math
 import platform
 import time
 from pathlib import Path
@@ -37,12 +36,10 @@ class RewardConfig:
     # from one at another height (the hang demo lowers 32 cm straight down), so
     # the distance breaks such ties; 0 gives the paper's J.
     progress_distance_weight: float = 2.0
-    # f_A training: steps, batch, learning rate, source-state jitter.
+    # f_A training: steps, batch, learning rate.
     registration_steps: int = 1500
     registration_batch: int = 256
     registration_lr: float = 2e-3
-    source_shift: float = 0.15  # [m] random shift of prior states
-    source_yaw_deg: float = 60.0  # random yaw of prior states
     seed: int = 0
 
     def __post_init__(self):
@@ -113,28 +110,15 @@ class Registration:
         return losses
 
 
-def jitter_states(
-    S: torch.Tensor, around: torch.Tensor, cfg: RewardConfig, gen: torch.Generator
-) -> torch.Tensor:
-    """Prior states moved to random planar poses around the demo's centroid, so
-    the registration net sees sources where deployment states will be."""
+def centred_states(S: torch.Tensor, around: torch.Tensor) -> torch.Tensor:
+    """Prior states (n, M, 3) moved on the table, unturned, so that each one's
+    centroid is at `around` (x, y): the demo's centroid, where f_A's targets
+    are."""
     n = len(S)
-    yaw = (torch.rand(n, generator=gen) * 2 - 1) * math.radians(cfg.source_yaw_deg)
-    c, s = yaw.cos(), yaw.sin()
-    z, o = torch.zeros_like(c), torch.ones_like(c)
-    R = torch.stack(
-        [
-            torch.stack([c, -s, z], -1),
-            torch.stack([s, c, z], -1),
-            torch.stack([z, z, o], -1),
-        ],
-        -2,
-    )
     centre = S[..., :2].mean(-2, keepdim=True)
     flat = torch.cat([centre, torch.zeros_like(centre[..., :1])], -1)
-    shift = (torch.rand(n, 1, 2, generator=gen) * 2 - 1) * cfg.source_shift
-    target = torch.cat([around[:2] + shift, torch.zeros(n, 1, 1)], -1)
-    return (S - flat) @ R.transpose(-1, -2) + target
+    target = torch.cat([around[:2].expand(n, 1, 2), torch.zeros(n, 1, 1)], -1)
+    return (S - flat) + target
 
 
 class DemoModel:
@@ -209,8 +193,6 @@ REGISTRATION_FIELDS = (
     "registration_steps",
     "registration_batch",
     "registration_lr",
-    "source_shift",
-    "source_yaw_deg",
     "seed",
 )
 
@@ -248,10 +230,10 @@ def learn_from_demo(
     *,
     cache: bool = True,
 ) -> tuple[DemoModel, dict]:
-    """Builds the demo model: trains f_A with prior states (moved around the
-    demo) as sources and the demo's states as targets. Returns the model and
-    a summary (training time, final alignment error, whether f_A came from
-    the cache).
+    """Builds the demo model: trains f_A with prior states (centred on the
+    demo's centroid) as sources and the demo's states as targets. Returns
+    the model and a summary (training time, final alignment error, whether
+    f_A came from the cache).
 
     With `cache`, f_A's weights are kept in the project's cache
     (learning/cache.py) under `RegistrationKey`, so the same demo and
@@ -276,10 +258,9 @@ def learn_from_demo(
                 "registration_final_loss": final_loss,
                 "registration_cached": True,
             }
-    gen = torch.Generator().manual_seed(cfg.seed)
     around = targets[..., :2].reshape(-1, 2).mean(0)
-    sources = jitter_states(
-        torch.as_tensor(np.asarray(prior_states), dtype=torch.float32), around, cfg, gen
+    sources = centred_states(
+        torch.as_tensor(np.asarray(prior_states), dtype=torch.float32), around
     )
     losses = f_A.fit(sources, targets, cfg)
     final_loss = round(float(np.mean(losses[-50:])), 6)
