@@ -9,6 +9,7 @@ the final state S_E[T - 1].
 import copy
 import dataclasses as dc
 import hashlib
+import math
 import platform
 import time
 from pathlib import Path
@@ -40,6 +41,11 @@ class RewardConfig:
     registration_steps: int = 1500
     registration_batch: int = 256
     registration_lr: float = 2e-3
+    # f_A's sources, centred on the demo, also turned about their centroids
+    # by a random yaw of up to this [deg] and moved by up to this [m] in x
+    # and y; 0, 0: centred only.
+    source_yaw_deg: float = 0.0
+    source_shift: float = 0.0
     seed: int = 0
 
     def __post_init__(self):
@@ -48,6 +54,14 @@ class RewardConfig:
                 raise ValueError(f"reward.{name} must be non-negative")
         if not 0 < self.tau_i <= 1:
             raise ValueError(f"reward.tau_i must be in (0, 1], got {self.tau_i}")
+        if not 0 <= self.source_yaw_deg <= 180:
+            raise ValueError(
+                f"reward.source_yaw_deg must be in [0, 180], got {self.source_yaw_deg}"
+            )
+        if self.source_shift < 0:
+            raise ValueError(
+                f"reward.source_shift must be non-negative, got {self.source_shift}"
+            )
 
 
 def euler_to_matrix(e: torch.Tensor) -> torch.Tensor:
@@ -110,15 +124,38 @@ class Registration:
         return losses
 
 
-def centred_states(S: torch.Tensor, around: torch.Tensor) -> torch.Tensor:
-    """Prior states (n, M, 3) moved on the table, unturned, so that each one's
-    centroid is at `around` (x, y): the demo's centroid, where f_A's targets
-    are."""
+def centred_states(
+    S: torch.Tensor,
+    around: torch.Tensor,
+    yaw_deg: float = 0.0,
+    shift: float = 0.0,
+    gen: torch.Generator | None = None,
+) -> torch.Tensor:
+    """Prior states (n, M, 3) moved on the table so that each one's centroid
+    is at `around` (x, y): the demo's centroid, where f_A's targets are.
+    Where `yaw_deg` or `shift` is above 0, each is also turned about its
+    centroid by a yaw drawn uniformly from [-yaw_deg, yaw_deg] and moved by
+    a draw from [-shift, shift] in x and in y (both drawn with `gen`)."""
     n = len(S)
     centre = S[..., :2].mean(-2, keepdim=True)
     flat = torch.cat([centre, torch.zeros_like(centre[..., :1])], -1)
-    target = torch.cat([around[:2].expand(n, 1, 2), torch.zeros(n, 1, 1)], -1)
-    return (S - flat) + target
+    if yaw_deg <= 0 and shift <= 0:
+        target = torch.cat([around[:2].expand(n, 1, 2), torch.zeros(n, 1, 1)], -1)
+        return (S - flat) + target
+    yaw = (torch.rand(n, generator=gen) * 2 - 1) * math.radians(yaw_deg)
+    c, s = yaw.cos(), yaw.sin()
+    z, o = torch.zeros_like(c), torch.ones_like(c)
+    R = torch.stack(
+        [
+            torch.stack([c, -s, z], -1),
+            torch.stack([s, c, z], -1),
+            torch.stack([z, z, o], -1),
+        ],
+        -2,
+    )
+    moved = (torch.rand(n, 1, 2, generator=gen) * 2 - 1) * shift
+    target = torch.cat([around[:2] + moved, torch.zeros(n, 1, 1)], -1)
+    return (S - flat) @ R.transpose(-1, -2) + target
 
 
 class DemoModel:
@@ -193,6 +230,8 @@ REGISTRATION_FIELDS = (
     "registration_steps",
     "registration_batch",
     "registration_lr",
+    "source_yaw_deg",
+    "source_shift",
     "seed",
 )
 
@@ -260,7 +299,11 @@ def learn_from_demo(
             }
     around = targets[..., :2].reshape(-1, 2).mean(0)
     sources = centred_states(
-        torch.as_tensor(np.asarray(prior_states), dtype=torch.float32), around
+        torch.as_tensor(np.asarray(prior_states), dtype=torch.float32),
+        around,
+        cfg.source_yaw_deg,
+        cfg.source_shift,
+        torch.Generator().manual_seed(cfg.seed),
     )
     losses = f_A.fit(sources, targets, cfg)
     final_loss = round(float(np.mean(losses[-50:])), 6)

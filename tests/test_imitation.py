@@ -9,6 +9,7 @@ import torch
 from fabric_imitation.learning.demo_learning import (
     DemoModel,
     RewardConfig,
+    centred_states,
     learn_from_demo,
 )
 from fabric_imitation.learning.mpc import Mpc, MpcConfig
@@ -189,13 +190,43 @@ def test_registration_recovers_a_known_rigid_transform():
     prior = np.stack(
         [square(0, 0, 0.3) + rng.normal(0, 0.01, (8, 3)) for _ in range(64)]
     )
+    # f_A learns to register turned and moved states from sources turned and
+    # moved so (with the sources only centred on the demo, the error here is
+    # about 3 cm).
     model, info = learn_from_demo(
-        target[None], prior.astype(np.float32), RewardConfig(registration_steps=1500)
+        target[None],
+        prior.astype(np.float32),
+        RewardConfig(registration_steps=1500, source_yaw_deg=60.0, source_shift=0.15),
     )
     aligned, e, T = model.f_A.align(torch.as_tensor(source), torch.as_tensor(target))
     error = (aligned - torch.as_tensor(target)).norm(dim=-1).mean()
     assert float(error.detach()) < 0.01
     assert float(e[2].detach()) == pytest.approx(yaw, abs=math.radians(5))
+
+
+def test_f_a_sources_are_centred_on_the_demo_and_turned_only_when_asked():
+    rng = np.random.default_rng(0)
+    S = torch.as_tensor(
+        np.stack([square(*rng.uniform(-0.2, 0.2, 2), 0.3) for _ in range(16)])
+    )
+    around = torch.tensor([0.05, 0.3])
+    still = centred_states(S, around)
+    centroids = still[..., :2].mean(-2)
+    assert torch.allclose(centroids, around.expand(16, 2), atol=1e-6)
+    # Unturned: each state only moved.
+    assert torch.allclose(still - still[:, :1], S - S[:, :1], atol=1e-6)
+    gen = torch.Generator().manual_seed(0)
+    turned = centred_states(S, around, 60.0, 0.0, gen)
+    assert torch.allclose(turned[..., :2].mean(-2), around.expand(16, 2), atol=1e-6)
+    # Turned rigidly about the vertical: shapes and heights kept, edges turned.
+    assert torch.allclose(torch.cdist(turned, turned), torch.cdist(S, S), atol=1e-5)
+    assert torch.equal(turned[..., 2], S[..., 2])
+    edge, edge0 = turned[:, 2] - turned[:, 0], S[:, 2] - S[:, 0]
+    yaw = torch.atan2(edge[:, 1], edge[:, 0]) - torch.atan2(edge0[:, 1], edge0[:, 0])
+    assert yaw.abs().max() <= math.radians(60) + 1e-5
+    assert yaw.abs().max() > math.radians(10)
+    with pytest.raises(ValueError, match="source_yaw_deg"):
+        RewardConfig(source_yaw_deg=-1.0)
 
 
 class Linear:
