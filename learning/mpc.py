@@ -2,8 +2,9 @@
 in torch. Works in the task object's frame.
 
 Each control step, from the current state S_t:
-1. action prior: roll h steps through f_I and f_D, each aiming at the
-   subgoal S_E[J + 1] of the imagined state;
+1. action prior: roll h steps through f_I (or, with `prior="grasp"`, the
+   grasped corners' offsets) and f_D, each aiming at the subgoal S_E[J + 1]
+   of the imagined state;
 2. sample N sequences X = X_prior + eps, eps ~ N(mu, diag Sigma); roll out
    with f_D; score sum_k gamma^(k-1) R_E(S_t+k) and count rule violations;
 3. keep the feasible ones, move (mu, Sigma) towards their top elites with
@@ -29,6 +30,7 @@ from fabric_imitation.learning.safety import (
     rule_violations,
     valid_actions,
 )
+from fabric_imitation.learning.state import corner_indices
 
 
 class Dynamics(Protocol):
@@ -74,6 +76,11 @@ class MpcConfig:
     # states from J - 1 (J: the progress of the state now), so every step has
     # the same tensor shapes; false: with the whole demo, as the paper's J.
     rollout_window: bool = True
+    # The action prior: "inverse" (the paper's: f_I towards each subgoal) or
+    # "grasp" (each gripper straight towards the subgoal's grasped corner, the
+    # exact inverse for the two keypoints the grippers hold, which does not
+    # read the estimates of the rest of the cloth).
+    prior: str = "inverse"
 
     def __post_init__(self):
         if self.num_samples < 1 or self.horizon < 1:
@@ -90,6 +97,8 @@ class MpcConfig:
             raise ValueError(f"mpc.tau_conv must be positive, got {self.tau_conv}")
         if not self.sigma0 > 0:
             raise ValueError(f"mpc.sigma0 must be positive, got {self.sigma0}")
+        if self.prior not in ("inverse", "grasp"):
+            raise ValueError(f"mpc.prior must be inverse or grasp, got {self.prior!r}")
 
 
 @dc.dataclass
@@ -158,7 +167,8 @@ class Mpc:
     def action_prior(
         self, S: torch.Tensor, gen: torch.Generator | None = None, window=None
     ):
-        """(h, 6): iterate f_I towards the subgoal of the imagined state, f_D.
+        """(h, 6): iterate f_I (or, with `prior="grasp"`, the grasped
+        corners' offsets) towards the subgoal of the imagined state, f_D.
 
         A prior action that breaks a rule is replaced by the nearest valid one
         among `prior_candidates` perturbations of it (zero if none is valid),
@@ -169,7 +179,12 @@ class Mpc:
         s = S[None]
         for i in range(cfg.horizon):
             goal = self.subgoal(s, window, i)
-            a = self.dynamics.inverse(s, goal)
+            if cfg.prior == "grasp":
+                idx = corner_indices(s.shape[-2])
+                g = [idx["s1"], idx["s2"]]
+                a = (goal[:, g] - s[:, g]).flatten(-2)
+            else:
+                a = self.dynamics.inverse(s, goal)
             a = self._clip(a)
             nxt = self.dynamics.forward(s, a)
             repair = cfg.use_cost and cfg.repair_prior
