@@ -327,6 +327,23 @@ def test_an_invalid_prior_action_is_repaired_unless_switched_off():
     assert torch.equal(mpc.action_prior(S)[0], raw[0])
 
 
+def test_the_grasp_prior_heads_for_the_subgoals_grasped_corners():
+    states = pulled_demo(n=8)
+    mpc = linear_goal_mpc(WrongInverse(), demo_model(states, tau_i=0.9))
+    mpc.config = dc.replace(mpc.config, prior="grasp")
+    S = torch.as_tensor(states[0] + [0.01, 0.0, 0.0], dtype=torch.float32)
+    # f_I (wrong here) is not read: each gripper moves straight towards the
+    # subgoal's grasped corner, clipped to one step's bound.
+    J, _ = mpc.demo.progress(S[None])
+    goal = mpc.demo.states[min(int(J[0]) + 1, mpc.demo.T - 1)]
+    want = mpc._clip(torch.cat([goal[0] - S[0], goal[2] - S[2]]))
+    prior = mpc.action_prior(S, torch.Generator().manual_seed(0))
+    assert torch.allclose(prior[0], want, atol=1e-6)
+    assert bool(valid_actions(S, prior[0], mpc.safety, CTX))
+    with pytest.raises(ValueError, match="mpc.prior must be inverse or grasp"):
+        MpcConfig(prior="replay")
+
+
 def test_mpc_reports_no_feasible_action():
     states = pulled_demo()
     # The far edge lies 15 cm beyond the workspace: no move brings it back in
