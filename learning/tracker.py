@@ -13,7 +13,11 @@ an estimate x_k and a variance v_k (isotropic, m^2). Per control step:
 where a is the grippers' displacement since the last frame (the robot
 measures it), spread_k f_R's heatmap standard deviation [px]
 (KeypointNet.locate), and q f_D's one-step error (TrackerConfig says which
-statistic each is). The grasped corners s1, s2 are where the
+statistic each is). Variances are kept per axis (M, 3); with
+`measurement_vertical_base` and `measurement_vertical_per_px2` set, r_k is
+f_R's horizontal error in x and y and its vertical error in z (a corner
+hidden under the cloth is read on the surface above it: mostly a height
+error), otherwise the same in all three. The grasped corners s1, s2 are where the
 grippers hold them. Optionally (off by default), a predicted keypoint inside
 the task object is put on the object's nearest face, as the cloth simulator
 does for held particles, since f_D learned no contact.
@@ -59,6 +63,13 @@ class TrackerConfig:
     # 1.2 cm from f_R's sharp readings (spread <= 4 px) on hang, against
     # 0.6 cm, and is further off on box_big (1.74 cm against f_R's 1.57).
     process_noise: float = 0.026
+    # f_R's vertical error [m] for spread s [px]: measurement_vertical_base +
+    # measurement_vertical_per_px2 * s^2, where both are given; then
+    # measurement_base and measurement_per_px2 are its horizontal error (the
+    # norm of the x, y error), each fitted the same way (`bench tracker`).
+    # None: one error for all three axes (the 3-D error's fit above).
+    measurement_vertical_base: float | None = None
+    measurement_vertical_per_px2: float | None = None
 
     # The controller's grasped corners s1, s2 are the measured gripper
     # positions (where the grippers hold them) instead of f_R's reading of
@@ -80,6 +91,27 @@ class TrackerConfig:
                 raise ValueError(
                     f"tracker.{name} must be positive and finite, got {value}"
                 )
+        vertical = (self.measurement_vertical_base, self.measurement_vertical_per_px2)
+        if (vertical[0] is None) != (vertical[1] is None):
+            raise ValueError(
+                "tracker.measurement_vertical_base and "
+                "tracker.measurement_vertical_per_px2 go together: give both or "
+                "neither"
+            )
+        if vertical[0] is not None and not (
+            math.isfinite(vertical[0]) and vertical[0] > 0
+        ):
+            raise ValueError(
+                "tracker.measurement_vertical_base must be positive and finite, "
+                f"got {vertical[0]}"
+            )
+        if vertical[1] is not None and not (
+            math.isfinite(vertical[1]) and vertical[1] >= 0
+        ):
+            raise ValueError(
+                "tracker.measurement_vertical_per_px2 must be >= 0 and finite, "
+                f"got {vertical[1]}"
+            )
         if not (
             math.isfinite(self.measurement_per_px2) and self.measurement_per_px2 >= 0
         ):
@@ -95,15 +127,41 @@ def measurement_sigma(spread: np.ndarray, config: TrackerConfig) -> np.ndarray:
     return config.measurement_base + config.measurement_per_px2 * spread**2
 
 
+def measurement_sigmas(spread: np.ndarray, config: TrackerConfig) -> np.ndarray:
+    """f_R's error [m] per axis (..., 3) for heatmap spreads (...) [px]: the
+    horizontal error in x and y and the vertical in z where the config has a
+    vertical model, else `measurement_sigma` in all three."""
+    sigma = measurement_sigma(spread, config)
+    if config.measurement_vertical_base is None:
+        return np.repeat(sigma[..., None], 3, -1)
+    spread = np.asarray(spread, dtype=np.float64)
+    vertical = (
+        config.measurement_vertical_base
+        + config.measurement_vertical_per_px2 * spread**2
+    )
+    return np.stack([sigma, sigma, vertical], -1)
+
+
+# [m] the least base an error fit returns: f_R's error with the sharpest
+# heatmap is not below a millimetre (the cloth's particles are 2 cm apart).
+MIN_MEASUREMENT_BASE = 0.001
+
+
 def fit_measurement_model(spread: np.ndarray, error: np.ndarray) -> tuple[float, float]:
     """Least-squares (base, per_px2) of error ~ base + per_px2 * spread^2 over
-    paired samples of f_R's spread [px] and its error [m]."""
+    paired samples of f_R's spread [px] and its error [m]. Where the free fit's
+    base is below MIN_MEASUREMENT_BASE (f_R's vertical error with a sharp
+    heatmap is about zero), the base is held there and per_px2 fitted alone."""
     spread = np.asarray(spread, dtype=np.float64).ravel()
     error = np.asarray(error, dtype=np.float64).ravel()
     if spread.shape != error.shape or spread.size < 2:
         raise ValueError("need at least two paired spreads and errors")
     X = np.stack([np.ones_like(spread), spread**2], 1)
     (base, per_px2), *_ = np.linalg.lstsq(X, error, rcond=None)
+    if base < MIN_MEASUREMENT_BASE:
+        base = MIN_MEASUREMENT_BASE
+        s2 = spread**2
+        per_px2 = float((s2 * (error - base)).sum() / max((s2 * s2).sum(), 1e-30))
     return float(base), float(per_px2)
 
 
@@ -182,13 +240,14 @@ class KeypointTracker:
         ``spread`` (M,): their heatmap spreads [px]; ``action`` (6,): the
         grippers' move since the previous frame (None: no prediction, f_R's
         reading stands); ``grasped`` (2, 3): where the grippers hold s1 and
-        s2, or None. Returns the new (estimate, variance)."""
+        s2, or None. Returns the new (estimate (M, 3), variance (M, 3) per
+        axis); a previous variance (M,) is taken as the same on each axis."""
         measured = np.asarray(measured, dtype=np.float64)
         if measured.shape != (self._m, 3):
             raise ValueError(f"keypoints must be ({self._m}, 3), got {measured.shape}")
-        r = measurement_sigma(spread, self.config) ** 2
-        if r.shape != (self._m,):
-            raise ValueError(f"spreads must be ({self._m},), got {r.shape}")
+        if np.shape(spread) != (self._m,):
+            raise ValueError(f"spreads must be ({self._m},), got {np.shape(spread)}")
+        r = measurement_sigmas(spread, self.config) ** 2
         if previous is not None and not (
             np.all(np.isfinite(previous[0])) and np.all(np.isfinite(previous[1]))
         ):
@@ -198,9 +257,12 @@ class KeypointTracker:
         else:
             estimate, variance = previous
             x = self._predict(estimate, np.asarray(action, dtype=np.float64))
-            v = np.asarray(variance, dtype=np.float64) + self.config.process_noise**2
+            v = np.asarray(variance, dtype=np.float64)
+            if v.ndim == 1:
+                v = np.repeat(v[:, None], 3, -1)
+            v = v + self.config.process_noise**2
             gain = v / (v + r)
-            x = x + gain[:, None] * (measured - x)
+            x = x + gain * (measured - x)
             v = (1.0 - gain) * v
         if grasped is not None:
             x[self._grasped] = np.asarray(grasped, dtype=np.float64).reshape(2, 3)

@@ -129,10 +129,11 @@ class KeypointEstimator(LeafSystem):
         self._corners = [idx[k] for k in ("s1", "s2")]
         self._state = self.DeclareDiscreteState(3 * num_keypoints)
         # The tracker's estimate is the `keypoints` state; its variance per
-        # keypoint, the grippers (world) and the object pose [x, y, yaw_rad]
-        # at the last update (NaN before the first).
+        # keypoint and axis, the grippers (world) and the object pose [x, y,
+        # yaw_rad] at the last update (NaN before the first). The variance
+        # is the same in x and y, so it holds in a frame turned about z.
         self._variance = self.DeclareDiscreteState(
-            BasicVector(np.full(num_keypoints, np.nan))
+            BasicVector(np.full(3 * num_keypoints, np.nan))
         )
         self._last_grippers = self.DeclareDiscreteState(BasicVector(np.full(6, np.nan)))
         self._last_pose = self.DeclareDiscreteState(BasicVector(np.full(3, np.nan)))
@@ -173,7 +174,7 @@ class KeypointEstimator(LeafSystem):
         into this update's object frame, should the object have moved);
         stores the new estimate's variance, the grippers and the pose.
         Returns the estimate (M, 3), object frame."""
-        variance = context.get_discrete_state(self._variance).value()
+        variance = context.get_discrete_state(self._variance).value().reshape(-1, 3)
         last_pose = context.get_discrete_state(self._last_pose).value()
         previous = None
         if np.all(np.isfinite(variance)) and np.all(np.isfinite(last_pose)):
@@ -192,7 +193,7 @@ class KeypointEstimator(LeafSystem):
         if not self._grasped_from_grippers:
             grasped = None
         x, v = self._tracker.step(previous, p_O, spread, action=action, grasped=grasped)
-        discrete_state.get_mutable_vector(self._variance).SetFromVector(v)
+        discrete_state.get_mutable_vector(self._variance).SetFromVector(v.ravel())
         discrete_state.get_mutable_vector(self._last_pose).SetFromVector(
             np.asarray(pose)
         )

@@ -8,6 +8,7 @@ from fabric_imitation.learning.errors import InputError
 from fabric_imitation.learning.priors import load_priors
 from fabric_imitation.learning.state import corner_indices
 from fabric_imitation.learning.tracker import (
+    MIN_MEASUREMENT_BASE,
     KeypointTracker,
     TrackerConfig,
     fit_measurement_model,
@@ -132,7 +133,8 @@ def test_first_frame_and_no_move_take_f_r_and_the_grippers():
     x, v = dut.step(None, z, np.full(M, 3.0), grasped=grasped)
     np.testing.assert_allclose(x[GRASPED], grasped)
     np.testing.assert_allclose(np.delete(x, GRASPED, 0), np.delete(z, GRASPED, 0))
-    assert (v[GRASPED] == 0).all() and (np.delete(v, GRASPED) > 0).all()
+    assert v.shape == (M, 3)
+    assert (v[GRASPED] == 0).all() and (np.delete(v, GRASPED, 0) > 0).all()
     x2, _ = dut.step((x, v), z + 0.05, np.full(M, 3.0), action=None)
     np.testing.assert_allclose(x2, z + 0.05)
 
@@ -157,8 +159,47 @@ def test_fusion_weighs_prediction_and_reading_by_their_errors():
     np.testing.assert_allclose(
         x, predicted + gain[:, None] * (reading - predicted), atol=1e-7
     )
-    np.testing.assert_allclose(v, (1 - gain) * prior, rtol=1e-12)
+    np.testing.assert_allclose(
+        v, ((1 - gain) * prior)[:, None].repeat(3, 1), rtol=1e-12
+    )
     assert (gain[:4] < 0.01).all() and (gain[4:6] > 0.9).all()
+
+
+def test_a_vertical_error_model_weighs_height_apart_from_place():
+    """With f_R's vertical error given apart from its horizontal one, a
+    diffuse reading moves the estimate in x and y as far as its horizontal
+    error allows and hardly at all in z; without it, the same in all three."""
+    flat = dict(process_noise=0.02, measurement_base=0.006, measurement_per_px2=3e-4)
+    split = dict(
+        process_noise=0.02,
+        measurement_base=0.008,
+        measurement_per_px2=6e-5,
+        measurement_vertical_base=0.001,
+        measurement_vertical_per_px2=3e-4,
+    )
+    x0 = square()
+    v0 = np.full(M, 1e-4)
+    move = np.zeros(6)
+    reading = x0 + [0.05, 0.0, 0.10]  # f_R: 5 cm aside, 10 cm too high
+    spread = np.full(M, 20.0)
+    x_flat, v_flat = tracker(**flat).step((x0, v0), reading, spread, action=move)
+    x_split, v_split = tracker(**split).step((x0, v0), reading, spread, action=move)
+    prior = 1e-4 + 0.02**2
+    g_h = prior / (prior + (0.008 + 6e-5 * 400) ** 2)
+    g_z = prior / (prior + (0.001 + 3e-4 * 400) ** 2)
+    np.testing.assert_allclose(x_split[:, 0] - x0[:, 0], g_h * 0.05, atol=1e-7)
+    np.testing.assert_allclose(x_split[:, 2] - x0[:, 2], g_z * 0.10, atol=1e-7)
+    np.testing.assert_allclose(v_split[:, 0], v_split[:, 1])
+    assert g_h > 0.25 and g_z < 0.05
+    # The flat model moves x and z by the same fraction of the offset.
+    np.testing.assert_allclose(
+        (x_flat - x0)[:, 0] / 0.05, (x_flat - x0)[:, 2] / 0.10, atol=1e-6
+    )
+    assert np.all(v_flat[:, 0] == v_flat[:, 2])
+    with pytest.raises(ValueError, match="go together"):
+        TrackerConfig(measurement_vertical_base=0.001)
+    with pytest.raises(ValueError, match="vertical_base must be positive"):
+        TrackerConfig(measurement_vertical_base=0.0, measurement_vertical_per_px2=1e-4)
 
 
 def test_a_broken_estimate_starts_again_from_f_r():
@@ -178,6 +219,11 @@ def test_measurement_model_and_its_fit():
     base, per = fit_measurement_model(s, 0.004 + 2e-4 * s**2)
     assert base == pytest.approx(0.004, abs=1e-9)
     assert per == pytest.approx(2e-4, rel=1e-6)
+    # An error that is about zero for a sharp heatmap: the base is held at
+    # the floor and the slope fitted alone.
+    base, per = fit_measurement_model(s, 3e-4 * s**2 - 0.002)
+    assert base == MIN_MEASUREMENT_BASE
+    assert 0 < per < 3e-4
     with pytest.raises(ValueError, match="at least two"):
         fit_measurement_model([1.0], [0.01])
 

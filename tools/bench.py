@@ -748,7 +748,8 @@ TRACKER_PREDICTIONS = {
 
 
 def _TrackVariant(priors, config, variant, pose, size, measured, spread, grasped):
-    """World keypoints (T, M, 3) tracked by `variant` (TRACKER_VARIANTS) from
+    """World keypoints (T, M, 3) tracked with `config` and the prediction of
+    `variant` (TRACKER_PREDICTIONS; f_D's where it names none) from
     f_R's world readings `measured` with their `spread`, the grippers at
     `grasped` (T, 2, 3, world); the tracker runs in the object frame `pose`."""
     from fabric_imitation.learning.state import object_to_world, world_to_object
@@ -758,9 +759,9 @@ def _TrackVariant(priors, config, variant, pose, size, measured, spread, grasped
         return world_to_object(p_W.reshape(-1, 3), pose).reshape(p_W.shape)
 
     tracker = KeypointTracker(
-        forward=TRACKER_PREDICTIONS[variant] or priors.forward,
+        forward=TRACKER_PREDICTIONS.get(variant) or priors.forward,
         num_keypoints=priors.num_keypoints,
-        config=dc.replace(config, object_projection=variant == "object_projection"),
+        config=config,
         object_size=size,
     )
     out = track_states(tracker, to_object(measured), spread, to_object(grasped))
@@ -783,9 +784,11 @@ def BenchTracker(
     against f_R alone on the shipped demos' frames, both compared with the
     simulator's true keypoints; the grippers' moves are those of the true
     grasped corners. Also the tracker with other predictions in place of
-    f_D's (TRACKER_VARIANTS). Also fits, on the same frames, the two errors the
-    tracker's defaults take: f_R's mean error against heatmap spread and
-    f_D's one-step error (mean and root mean square). Writes JSON and, next
+    f_D's (TRACKER_VARIANTS) and with f_R's vertical error apart from its
+    horizontal one ("vertical_model", the fits below). Also fits, on the
+    same frames, the errors the tracker's settings take: f_R's mean error
+    against heatmap spread (3-D, and horizontal and vertical apart) and f_D's
+    one-step error (mean and root mean square). Writes JSON and, next
     to it, a plot of the far corners' errors."""
     import torch
     from fabric_imitation.diagrams.imitation import DEFAULT_DEMOS, DEFAULT_PRIORS
@@ -803,19 +806,50 @@ def BenchTracker(
     far = [idx["s3"], idx["s4"]]
     others = [k for k in range(priors.num_keypoints) if k not in (idx["s1"], idx["s2"])]
     config = TrackerConfig(enabled=True, object_projection=False)
-    results, curves, spreads, errors, one_step = {}, {}, [], [], []
+    # f_R once per demo; its errors fit the measurement models first, so
+    # that the tracker with the fitted vertical model is one of the variants.
+    frames = {}
+    spreads, errors, horizontal, vertical, one_step = [], [], [], [], []
     for name in demo_names:
         demo = LoadDemo(DEFAULT_DEMOS / name)
         truth = np.load(demo.path / "ground_truth.npz")["keypoints_W"]
         scenario = LoadScenario(scenario_text=demo.scenario_yaml)
         size = scenario.object.size if scenario.object.kind != "none" else None
         grasped = truth[:, [idx["s1"], idx["s2"]]]
-        # f_R once per demo; each variant tracks its readings.
         measured, spread = priors.keypoints_and_spread(demo.mask, demo.depth)
+        frames[name] = (demo, truth, size, grasped, measured, spread)
+        diff = (measured - truth)[:, others]
+        spreads.append(spread[:, others].ravel())
+        errors.append(np.linalg.norm(diff, axis=-1).ravel())
+        horizontal.append(np.linalg.norm(diff[..., :2], axis=-1).ravel())
+        vertical.append(np.abs(diff[..., 2]).ravel())
+        # f_D's one-step error from the true state and the true move.
+        moves = (grasped[1:] - grasped[:-1]).reshape(-1, 6)
+        e_fd = np.linalg.norm(
+            priors.forward(truth[:-1], moves).numpy() - truth[1:], axis=-1
+        )
+        one_step.append(e_fd[:, others].ravel())
+    spread_all = np.concatenate(spreads)
+    base, per_px2 = fit_measurement_model(spread_all, np.concatenate(errors))
+    h_base, h_per_px2 = fit_measurement_model(spread_all, np.concatenate(horizontal))
+    v_base, v_per_px2 = fit_measurement_model(spread_all, np.concatenate(vertical))
+    configs = {
+        variant: dc.replace(config, object_projection=variant == "object_projection")
+        for variant in TRACKER_VARIANTS
+    }
+    configs["vertical_model"] = dc.replace(
+        config,
+        measurement_base=h_base,
+        measurement_per_px2=h_per_px2,
+        measurement_vertical_base=v_base,
+        measurement_vertical_per_px2=v_per_px2,
+    )
+    results, curves = {}, {}
+    for name, (demo, truth, size, grasped, measured, spread) in frames.items():
         runs = {
             variant: _TrackVariant(
                 priors,
-                config,
+                cfg,
                 variant,
                 demo.object_pose,
                 size,
@@ -823,19 +857,11 @@ def BenchTracker(
                 spread,
                 grasped,
             )
-            for variant in TRACKER_VARIANTS
+            for variant, cfg in configs.items()
         }
         e_fr = np.linalg.norm(measured - truth, axis=-1)
         errors_of = {v: np.linalg.norm(run - truth, axis=-1) for v, run in runs.items()}
         e_tr = errors_of["tracked"]
-        # f_D's one-step error from the true state and the true move.
-        moves = (grasped[1:] - grasped[:-1]).reshape(-1, 6)
-        e_fd = np.linalg.norm(
-            priors.forward(truth[:-1], moves).numpy() - truth[1:], axis=-1
-        )
-        one_step.append(e_fd[:, others].ravel())
-        spreads.append(spread[:, others].ravel())
-        errors.append(e_fr[:, others].ravel())
         off = e_fr[:, far] > TRACKER_OFF_M
         sure = spread[:, others] <= TRACKER_SURE_SPREAD_PX
         follow = np.linalg.norm(runs["tracked"] - measured, axis=-1)[:, others]
@@ -854,7 +880,7 @@ def BenchTracker(
                 "f_R": cm(e_fr[:, far][off]),
                 **{v: cm(e[:, far][off]) for v, e in errors_of.items()},
             },
-            "f_D_one_step_error_cm_mean": cm(e_fd[:, others]),
+            "f_D_one_step_error_cm_mean": cm(one_step[len(results)]),
             "sure_keypoints": int(sure.sum()),
             "sure_tracked_from_f_R_cm_max": (
                 round(100 * float(follow[sure].max()), 2) if sure.any() else None
@@ -864,9 +890,6 @@ def BenchTracker(
             100 * e_fr[:, far].mean(1),
             100 * e_tr[:, far].mean(1),
         )
-    base, per_px2 = fit_measurement_model(
-        np.concatenate(spreads), np.concatenate(errors)
-    )
     summary = {
         "benchmark": "tracker",
         "demos": list(demo_names),
@@ -876,6 +899,14 @@ def BenchTracker(
         "measurement_model_fit": {
             "base_m": round(base, 5),
             "per_px2_m": float(f"{per_px2:.3g}"),
+            "horizontal": {
+                "base_m": round(h_base, 5),
+                "per_px2_m": float(f"{h_per_px2:.3g}"),
+            },
+            "vertical": {
+                "base_m": round(v_base, 5),
+                "per_px2_m": float(f"{v_per_px2:.3g}"),
+            },
         },
         "f_D_one_step_error_m": {
             "mean": round(float(np.concatenate(one_step).mean()), 4),
