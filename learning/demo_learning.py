@@ -32,6 +32,11 @@ class RewardConfig:
     w_n: float = 50.0
     # Termination: IoU with the last demo state above this, and J = T - 1.
     tau_i: float = 0.75
+    # Termination's progress test passes from J = T - 1 - this on (0: J =
+    # T - 1, the paper's). J, the argmax over demo states, moves back and
+    # forth by one state where consecutive demo states differ by less than
+    # the estimate's error.
+    done_progress_slack: int = 0
     # Progress score = IoU - this [1/m] x mean 3-D keypoint distance. The
     # paper's top-down IoU alone cannot tell a cloth lifted or lowered in place
     # from one at another height (the hang demo lowers 32 cm straight down), so
@@ -54,6 +59,11 @@ class RewardConfig:
                 raise ValueError(f"reward.{name} must be non-negative")
         if not 0 < self.tau_i <= 1:
             raise ValueError(f"reward.tau_i must be in (0, 1], got {self.tau_i}")
+        if self.done_progress_slack < 0:
+            raise ValueError(
+                "reward.done_progress_slack must be non-negative, got "
+                f"{self.done_progress_slack}"
+            )
         if not 0 <= self.source_yaw_deg <= 180:
             raise ValueError(
                 f"reward.source_yaw_deg must be in [0, 180], got {self.source_yaw_deg}"
@@ -218,11 +228,13 @@ class DemoModel:
 
     @torch.no_grad()
     def done(self, S: torch.Tensor) -> torch.Tensor:
-        """Termination classifier: IoU with S_E^T above tau_I and J = T - 1."""
+        """Termination classifier: IoU with S_E^T above tau_I and J = T - 1
+        (J >= T - 1 - `done_progress_slack`)."""
         S = torch.as_tensor(S, dtype=torch.float32)
-        J, _ = self.progress(S)
+        progress, _ = self.progress(S)
         last_iou = self.similarity(S, (self.T - 1, self.T))[..., 0]
-        return (last_iou > self.config.tau_i) & (J == self.T - 1)
+        first = self.T - 1 - self.config.done_progress_slack
+        return (last_iou > self.config.tau_i) & (progress >= first)
 
 
 # f_A's training inputs besides the states (RewardConfig fields).

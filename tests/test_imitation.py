@@ -137,6 +137,25 @@ def test_reward_and_termination_on_hand_made_states():
     assert not bool(model.done(past + torch.tensor([0.0, -0.05, 0.0])))
 
 
+def test_termination_progress_slack_lets_the_state_before_the_last_end():
+    # A 3 cm pull of a 30 cm square: S_E^{T-2} has IoU 27/33 = 0.82 with S_E^T.
+    states = pulled_demo()
+    before_last = torch.as_tensor(states[-2])
+    assert not bool(demo_model(states, tau_i=0.8).done(before_last))
+    slack = demo_model(states, tau_i=0.8, done_progress_slack=1)
+    assert bool(slack.done(before_last))
+    assert bool(slack.done(torch.as_tensor(states[-1])))
+    # Two states back (IoU 24/36) fails the IoU test whatever the slack.
+    assert not bool(slack.done(torch.as_tensor(states[-3])))
+    assert not bool(
+        demo_model(states, tau_i=0.6, done_progress_slack=1).done(
+            torch.as_tensor(states[-3])
+        )
+    )
+    with pytest.raises(ValueError, match="done_progress_slack"):
+        RewardConfig(done_progress_slack=-1)
+
+
 def test_d_p_on_hand_made_states():
     states = pulled_demo()
     S = states[3].copy()
