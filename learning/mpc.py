@@ -76,11 +76,13 @@ class MpcConfig:
     # states from J - 1 (J: the progress of the state now), so every step has
     # the same tensor shapes; false: with the whole demo, as the paper's J.
     rollout_window: bool = True
-    # The action prior: "inverse" (the paper's: f_I towards each subgoal) or
-    # "grasp" (each gripper straight towards the subgoal's grasped corner, the
-    # exact inverse for the two keypoints the grippers hold, which does not
-    # read the estimates of the rest of the cloth).
-    prior: str = "inverse"
+    # The action prior: "grasp" (each gripper straight towards the subgoal's
+    # grasped corner, the exact inverse for the two keypoints the grippers
+    # hold, which does not read the estimates of the rest of the cloth) or
+    # "inverse" (the paper's: f_I towards each subgoal). With "grasp", 140 of
+    # 150 development trials succeed against 129 with "inverse" (+7.3 pp,
+    # Newcombe 95 % [+1.0, +14.0]; docs/development.md, "The grasp prior").
+    prior: str = "grasp"
 
     def __post_init__(self):
         if self.num_samples < 1 or self.horizon < 1:

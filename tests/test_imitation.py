@@ -334,7 +334,9 @@ def small_mpc(dynamics, states) -> Mpc:
 
 def test_an_invalid_prior_action_is_repaired_unless_switched_off():
     states = pulled_demo(n=8)
-    mpc = linear_goal_mpc(WrongInverse(), demo_model(states, tau_i=0.9))
+    mpc = linear_goal_mpc(
+        WrongInverse(), demo_model(states, tau_i=0.9), prior="inverse"
+    )
     # The (wrong) f_I pushes the grasped corners 3 cm back into the cloth:
     # rule 2 forbids it, and the repair puts a valid action in its place.
     S = torch.as_tensor(states[0])
@@ -349,7 +351,7 @@ def test_an_invalid_prior_action_is_repaired_unless_switched_off():
 def test_the_grasp_prior_heads_for_the_subgoals_grasped_corners():
     states = pulled_demo(n=8)
     mpc = linear_goal_mpc(WrongInverse(), demo_model(states, tau_i=0.9))
-    mpc.config = dc.replace(mpc.config, prior="grasp")
+    assert mpc.config.prior == "grasp"  # the default
     S = torch.as_tensor(states[0] + [0.01, 0.0, 0.0], dtype=torch.float32)
     # f_I (wrong here) is not read: each gripper moves straight towards the
     # subgoal's grasped corner, clipped to one step's bound.
