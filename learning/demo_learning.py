@@ -30,7 +30,8 @@ class RewardConfig:
     w_r: float = 0.1
     # Weight of the negative (overshoot) distance D_N.
     w_n: float = 50.0
-    # Termination: IoU with the last demo state above this, and J = T - 1.
+    # Termination: IoU with the last demo state above this, and J >= T - 1 -
+    # done_progress_slack.
     tau_i: float = 0.75
     # Termination's progress test passes from J = T - 1 - this on (0: J =
     # T - 1, the paper's). J, the argmax over demo states, moves back and
@@ -228,8 +229,8 @@ class DemoModel:
 
     @torch.no_grad()
     def done(self, S: torch.Tensor) -> torch.Tensor:
-        """Termination classifier: IoU with S_E^T above tau_I and J = T - 1
-        (J >= T - 1 - `done_progress_slack`)."""
+        """Termination classifier: IoU with S_E^T above tau_I and J >= T - 1
+        - `done_progress_slack` (J = T - 1 with the paper's slack 0)."""
         S = torch.as_tensor(S, dtype=torch.float32)
         progress, _ = self.progress(S)
         last_iou = self.similarity(S, (self.T - 1, self.T))[..., 0]

@@ -52,8 +52,9 @@ class MpcConfig:
     # points of success at development seeds (docs/development.md).
     max_iterations: int = 4
     gamma: float = 0.9
-    # Ablations (paper Table I): no_mpc applies f_I's action; no_prior samples
-    # around zero; no_cost ignores the constraint cost.
+    # Ablations (paper Table I): use_mpc false applies the prior's first
+    # action (evaluate's no_mpc sets prior inverse: f_I's action, the
+    # paper's); no_prior samples around zero; no_cost ignores the cost.
     use_mpc: bool = True
     use_prior: bool = True
     use_cost: bool = True
@@ -61,7 +62,7 @@ class MpcConfig:
     step_cap_factor: float = 2.0
     # An action of the prior that breaks a rule is replaced by the nearest
     # valid one among this many perturbations of it (Mpc.action_prior);
-    # repair_prior false: the prior is used as f_I gives it (the paper's).
+    # repair_prior false: the prior is used as it comes (the paper's).
     repair_prior: bool = True
     prior_candidates: int = 64
     # Carry the noise distribution (mu, Sigma) from one control step to the

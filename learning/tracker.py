@@ -3,7 +3,7 @@ prediction from the previous estimate and the grippers' measured move.
 
 The paper names tracking the manipulated object through the whole
 manipulation as the remedy for occlusion (Sec. VI). Each keypoint k carries
-an estimate x_k and a variance v_k (isotropic, m^2). Per control step:
+an estimate x_k and a variance v_k per axis (m^2). Per control step:
 
     predict   x^- = f_D(x, a),            v^- = v + q^2
     measure   z_k = f_R's keypoint,       r_k = (sigma_0 + c * spread_k^2)^2
@@ -161,7 +161,8 @@ def fit_measurement_model(spread: np.ndarray, error: np.ndarray) -> tuple[float,
     if base < MIN_MEASUREMENT_BASE:
         base = MIN_MEASUREMENT_BASE
         s2 = spread**2
-        per_px2 = float((s2 * (error - base)).sum() / max((s2 * s2).sum(), 1e-30))
+        per_px2 = (s2 * (error - base)).sum() / max((s2 * s2).sum(), 1e-30)
+        per_px2 = max(0.0, float(per_px2))
     return float(base), float(per_px2)
 
 
@@ -235,7 +236,7 @@ class KeypointTracker:
         action: np.ndarray | None = None,
         grasped: np.ndarray | None = None,
     ) -> tuple[np.ndarray, np.ndarray]:
-        """One frame. ``previous``: the last (estimate (M, 3), variance (M,)),
+        """One frame. ``previous``: the last (estimate (M, 3), variance (M, 3)),
         or None at the first frame; ``measured`` (M, 3): f_R's keypoints,
         ``spread`` (M,): their heatmap spreads [px]; ``action`` (6,): the
         grippers' move since the previous frame (None: no prediction, f_R's

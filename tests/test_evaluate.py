@@ -3,7 +3,13 @@ trials' JSON lines."""
 
 import numpy as np
 import pytest
-from fabric_imitation.tools.evaluate import PROTOCOLS, ResultsMarkdown, _aggregate
+from fabric_imitation.learning.mpc import MpcConfig
+from fabric_imitation.tools.evaluate import (
+    METHODS,
+    PROTOCOLS,
+    ResultsMarkdown,
+    _aggregate,
+)
 
 
 def _row(trial, success, breaks, steps, iou):
@@ -275,3 +281,13 @@ def test_a_sampling_seed_is_another_run_of_the_same_poses(tmp_path, monkeypatch)
         (3, 1),
     ]
     assert "sampling seed 3" in (tmp_path / "eval.jsonl.md").read_text()
+
+
+def test_the_no_mpc_ablation_applies_f_i_whatever_the_policys_prior():
+    # The paper's No MPC applies f_I's action; the shipped prior is the
+    # grasped corners', so the ablation must name f_I itself.
+    assert MpcConfig().prior == "grasp"
+    _, changes = METHODS["no_mpc"]
+    assert changes["prior"] == "inverse" and not changes["use_mpc"]
+    _, ours = METHODS["ours"]
+    assert "prior" not in ours

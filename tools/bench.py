@@ -737,7 +737,8 @@ def _plot_occlusion(table: dict, path: Path) -> None:
 
 # `bench tracker`'s variants: the tracker as configured (f_D predicts), with
 # the object projection, with every keypoint moved by the mean of the two
-# grippers' moves instead of f_D ("rigid"), and with no move at all ("still").
+# grippers' moves instead of f_D ("rigid"), with no move at all ("still"),
+# and with f_R's height error apart from its horizontal one ("vertical_model").
 TRACKER_VARIANTS = ("tracked", "object_projection", "rigid_prediction", "no_prediction")
 TRACKER_PREDICTIONS = {
     "tracked": None,
