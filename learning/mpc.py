@@ -39,6 +39,10 @@ class Dynamics(Protocol):
     def inverse(self, S: torch.Tensor, S_next: torch.Tensor) -> torch.Tensor: ...
 
 
+# The action priors `MpcConfig.prior` names.
+ACTION_PRIORS = ("grasp", "inverse")
+
+
 @dc.dataclass
 class MpcConfig:
     num_samples: int = 500  # N
@@ -80,9 +84,8 @@ class MpcConfig:
     # The action prior: "grasp" (each gripper straight towards the subgoal's
     # grasped corner, the exact inverse for the two keypoints the grippers
     # hold, which does not read the estimates of the rest of the cloth) or
-    # "inverse" (the paper's: f_I towards each subgoal). With "grasp", 140 of
-    # 150 development trials succeed against 129 with "inverse" (+7.3 pp,
-    # Newcombe 95 % [+1.0, +14.0]; docs/development.md, "The grasp prior").
+    # "inverse" (the paper's: f_I towards each subgoal); the evidence for the
+    # default is in docs/method.md.
     prior: str = "grasp"
 
     def __post_init__(self):
@@ -100,7 +103,7 @@ class MpcConfig:
             raise ValueError(f"mpc.tau_conv must be positive, got {self.tau_conv}")
         if not self.sigma0 > 0:
             raise ValueError(f"mpc.sigma0 must be positive, got {self.sigma0}")
-        if self.prior not in ("inverse", "grasp"):
+        if self.prior not in ACTION_PRIORS:
             raise ValueError(f"mpc.prior must be inverse or grasp, got {self.prior!r}")
 
 
