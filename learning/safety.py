@@ -39,6 +39,11 @@ class SafetyConfig:
     # ended by a hand-object collision fall from 5 to 0, success 75 -> 78
     # (+3.3 pp, Newcombe 95 % [-5.6, +12.4]; docs/development.md).
     hand_shape: bool = True
+    # ... with each sphere of the hand kept this far [m] from the object
+    # (rule 4's margin for the hand; the grasped point keeps object_margin).
+    # Between two control steps a gripper overshoots its target by a few
+    # millimetres, so a hand planned to graze the object touches it.
+    hand_margin: float = 0.0
     # Action bound [m] per axis per step.
     max_step: float = 0.03
     # The controller's view only (states estimated from the camera): judge
@@ -67,6 +72,10 @@ class SafetyConfig:
             raise ValueError(
                 "safety.tau_d_demo_margin_deg must be in [0, 90), got "
                 f"{self.tau_d_demo_margin_deg}"
+            )
+        if self.hand_margin < 0:
+            raise ValueError(
+                f"safety.hand_margin must be >= 0, got {self.hand_margin}"
             )
         if self.max_step <= 0:
             raise ValueError(f"safety.max_step must be positive, got {self.max_step}")
@@ -211,16 +220,21 @@ def rule_violations(
             inside = object_signed_distance(grippers, kind, size) < margin
         out["object"] = inside.any(-1)
         if ctx.hand_spheres is not None:
-            out["object"] = out["object"] | _hand_in_box(grippers, ctx)
+            out["object"] = out["object"] | _hand_in_box(
+                grippers, ctx, config.hand_margin
+            )
     else:
         out["object"] = torch.zeros_like(out["bounds"])
     return out
 
 
-def _hand_in_box(grippers: torch.Tensor, ctx: SafetyContext) -> torch.Tensor:
+def _hand_in_box(
+    grippers: torch.Tensor, ctx: SafetyContext, margin: float = 0.0
+) -> torch.Tensor:
     """(...,) True where a sphere of either gripper's hand (ctx.hand_spheres,
-    world-aligned, turned into the states' frame) enters the object (the
-    states' frame: centred in x and y, from z = 0 up)."""
+    world-aligned, turned into the states' frame) comes closer than `margin`
+    [m] to the object (the states' frame: centred in x and y, from z = 0
+    up)."""
     spheres = torch.as_tensor(ctx.hand_spheres, dtype=grippers.dtype)
     offsets, radius = spheres[:, :3], spheres[:, 3]
     if ctx.frame_pose is not None:
@@ -236,7 +250,7 @@ def _hand_in_box(grippers: torch.Tensor, ctx: SafetyContext) -> torch.Tensor:
         )
     points = grippers[..., None, :] + offsets  # (..., 2, n, 3)
     distance = object_signed_distance(points, ctx.object_kind, ctx.object_size)
-    return (distance < radius).any(-1).any(-1)
+    return (distance < radius + margin).any(-1).any(-1)
 
 
 def _outside_workspace(S, A, S_next, grippers, ctx: SafetyContext) -> torch.Tensor:
