@@ -49,7 +49,11 @@ from fabric_imitation.learning.state import (
     corner_indices,
     world_to_object,
 )
-from fabric_imitation.learning.tracker import KeypointTracker, track_states
+from fabric_imitation.learning.tracker import (
+    KeypointTracker,
+    running_median,
+    track_states,
+)
 from fabric_imitation.scenarios.schema import Scenario
 from fabric_imitation.systems.imitation import (
     CfmController,
@@ -86,15 +90,19 @@ def DemoStates(
 ) -> np.ndarray:
     """S_E^1..T: f_R on every demo frame, in the demo's object frame. With a
     `tracker` (object frame), the states are tracked as the imitation's are,
-    the demo's grasped corners standing in for the grippers the video does
-    not measure, so demo and imitation states come from the same
-    estimator."""
+    the demo's grasped corners (f_R's, through a running median of
+    `tracker.config.demo_grasped_median` frames) standing in for the
+    grippers the video does not measure, so demo and imitation states come
+    from the same estimator."""
     p_W, spread = priors.keypoints_and_spread(demo.mask, demo.depth)
     states = world_to_object(p_W, demo.object_pose)
     if tracker is None:
         return states
     idx = corner_indices(priors.num_keypoints)
-    return track_states(tracker, states, spread, states[:, [idx["s1"], idx["s2"]]])
+    grasped = running_median(
+        states[:, [idx["s1"], idx["s2"]]], tracker.config.demo_grasped_median
+    )
+    return track_states(tracker, states, spread, grasped)
 
 
 def _Tracker(scenario: Scenario, priors: Priors) -> KeypointTracker | None:

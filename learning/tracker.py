@@ -84,7 +84,20 @@ class TrackerConfig:
     # tracker`).
     object_projection: bool = False
 
+    # The demo's grasped-corner track, which stands in for the grippers the
+    # video does not measure (`running_median`): each frame's s1, s2 the
+    # median of f_R's readings over this many consecutive frames (odd; 1:
+    # each frame's own reading). A hand moves smoothly, so a corner f_R
+    # misreads in one frame (the hang demo's left corner at frame 15, read
+    # 20 cm below the grippers) is dropped instead of becoming a subgoal.
+    demo_grasped_median: int = 1
+
     def __post_init__(self):
+        if self.demo_grasped_median < 1 or self.demo_grasped_median % 2 == 0:
+            raise ValueError(
+                "tracker.demo_grasped_median must be an odd number of frames "
+                f">= 1, got {self.demo_grasped_median}"
+            )
         for name in ("measurement_base", "process_noise"):
             value = getattr(self, name)
             if not (math.isfinite(value) and value > 0):
@@ -281,6 +294,21 @@ class KeypointTracker:
         if self.config.object_projection and self._object_size is not None:
             pred = project_out_of_box(pred, self._object_size)
         return pred
+
+
+def running_median(track: np.ndarray, frames: int) -> np.ndarray:
+    """Each row of ``track`` (T, ...) replaced by the median of the rows
+    around it, per coordinate: ``frames`` rows (odd) centred on it, fewer
+    near the ends, where the window shrinks to stay centred (the first and
+    last rows are kept). 1 returns a copy."""
+    track = np.asarray(track, dtype=np.float64)
+    out = track.copy()
+    T = len(track)
+    for t in range(T):
+        half = min(frames // 2, t, T - 1 - t)
+        if half > 0:
+            out[t] = np.median(track[t - half : t + half + 1], axis=0)
+    return out
 
 
 def track_states(

@@ -29,13 +29,17 @@ CTX = SafetyContext(
 CFG = SafetyConfig()
 
 
-def violated(A, S=None, ctx=CTX, S_next=None):
+def violated(A, S=None, ctx=CTX, S_next=None, config=CFG):
     import torch
 
     t = torch.as_tensor
     S = flat_state() if S is None else S
     out = rule_violations(
-        t(S), t(np.asarray(A, float)), CFG, ctx, None if S_next is None else t(S_next)
+        t(S),
+        t(np.asarray(A, float)),
+        config,
+        ctx,
+        None if S_next is None else t(S_next),
     )
     return {k for k, v in out.items() if bool(v)}
 
@@ -134,6 +138,31 @@ def test_the_hand_shape_keeps_the_hand_out_of_the_object():
     S[0] = [0.0, 0.095, 0.03]  # 5 cm beyond the +y face: the sphere reaches it
     assert "object" in violated(stay, S=S, ctx=turned)
     assert "object" not in violated(stay, S=S, ctx=points)
+
+
+def test_the_hand_margin_keeps_the_hand_that_far_from_the_object():
+    """hand_margin: a hand sphere 5 mm from the object's face passes with no
+    margin and breaks rule 4 with a 1 cm one; 15 mm away it passes both."""
+    size = np.array([0.14, 0.09, 0.06])
+    sphere = np.array([[0.05, 0.0, 0.0, 0.01]])  # 5 cm along +x, radius 1 cm
+    ctx = SafetyContext(
+        edge_length=L,
+        workspace_lower=CTX.workspace_lower,
+        workspace_upper=CTX.workspace_upper,
+        object_size=size,
+        hand_spheres=sphere,
+    )
+    margin = SafetyConfig(hand_margin=0.01)
+    stay = [0.0, 0.0, 0.0, 0, 0, 0]
+    S = flat_state()
+    # The sphere's centre at x = -0.085: its surface 5 mm from the -x face.
+    S[0] = [-0.135, 0.0, 0.03]
+    assert "object" not in violated(stay, S=S, ctx=ctx)
+    assert "object" in violated(stay, S=S, ctx=ctx, config=margin)
+    S[0] = [-0.145, 0.0, 0.03]  # 15 mm: clear of the margin
+    assert "object" not in violated(stay, S=S, ctx=ctx, config=margin)
+    with pytest.raises(ValueError, match="hand_margin"):
+        SafetyConfig(hand_margin=-0.01)
 
 
 def test_rules_are_batched():
