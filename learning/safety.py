@@ -74,9 +74,7 @@ class SafetyConfig:
                 f"{self.tau_d_demo_margin_deg}"
             )
         if self.hand_margin < 0:
-            raise ValueError(
-                f"safety.hand_margin must be >= 0, got {self.hand_margin}"
-            )
+            raise ValueError(f"safety.hand_margin must be >= 0, got {self.hand_margin}")
         if self.max_step <= 0:
             raise ValueError(f"safety.max_step must be positive, got {self.max_step}")
 
