@@ -336,8 +336,10 @@ class TcnMpc(Mpc):
         self._step = step
         return min(step, self.demo.T - 1)
 
-    def subgoal(self, s, window, i):
-        return self._aligned(i)[None].expand(len(s), -1, -1)
+    def _subgoal_index(self, s, window, i):
+        return torch.full(
+            (len(s),), min(self._step + i + 1, self.demo.T - 1), dtype=torch.long
+        )
 
     @torch.no_grad()
     def rollout(self, S, X, window):

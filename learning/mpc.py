@@ -31,6 +31,7 @@ from fabric_imitation.learning.safety import (
     valid_actions,
 )
 from fabric_imitation.learning.state import corner_indices
+from fabric_imitation.learning.tracker import running_median
 
 
 class Dynamics(Protocol):
@@ -87,6 +88,12 @@ class MpcConfig:
     # "inverse" (the paper's: f_I towards each subgoal); the evidence for the
     # default is in docs/method.md.
     prior: str = "grasp"
+    # The grasp prior's path: each demo state's grasped corners through a
+    # running median of this many states (odd; 1: the demo's states as they
+    # are). A hand's path is smooth, so a corner f_R misreads in one demo
+    # frame is not a place to head for; the reward and the rules still read
+    # the demo's states as they are.
+    grasp_path_median: int = 1
 
     def __post_init__(self):
         if self.num_samples < 1 or self.horizon < 1:
@@ -105,6 +112,11 @@ class MpcConfig:
             raise ValueError(f"mpc.sigma0 must be positive, got {self.sigma0}")
         if self.prior not in ACTION_PRIORS:
             raise ValueError(f"mpc.prior must be inverse or grasp, got {self.prior!r}")
+        if self.grasp_path_median < 1 or self.grasp_path_median % 2 == 0:
+            raise ValueError(
+                "mpc.grasp_path_median must be an odd number of states >= 1, "
+                f"got {self.grasp_path_median}"
+            )
 
 
 @dc.dataclass
@@ -143,6 +155,12 @@ class Mpc:
         self.safety = safety
         self.ctx = safety_ctx
         self.config = config
+        # (T, 2, 3): where the grasp prior sends the grippers at each subgoal.
+        g = self._grasped_indices(demo.states.shape[-2])
+        self._grasp_path = torch.as_tensor(
+            running_median(demo.states[:, g].cpu().numpy(), config.grasp_path_median),
+            dtype=demo.states.dtype,
+        )
 
     def _window(self, J: int) -> tuple[int, int]:
         """Demo states the rollouts are compared with: from J - 1 on, a fixed
@@ -184,13 +202,12 @@ class Mpc:
         out = []
         s = S[None]
         for i in range(cfg.horizon):
-            goal = self.subgoal(s, window, i)
             if cfg.prior == "grasp":
-                idx = corner_indices(s.shape[-2])
-                g = [idx["s1"], idx["s2"]]
-                a = (goal[:, g] - s[:, g]).flatten(-2)
+                g = self._grasped_indices(s.shape[-2])
+                target = self._grasp_path[self._subgoal_index(s, window, i)]
+                a = (target - s[:, g]).flatten(-2)
             else:
-                a = self.dynamics.inverse(s, goal)
+                a = self.dynamics.inverse(s, self.subgoal(s, window, i))
             a = self._clip(a)
             nxt = self.dynamics.forward(s, a)
             repair = cfg.use_cost and cfg.repair_prior
@@ -205,10 +222,19 @@ class Mpc:
 
     def subgoal(self, s: torch.Tensor, window, i: int) -> torch.Tensor:
         """The demo state (B, M, 3) the action prior heads for from the
-        imagined states s (B, M, 3) at horizon step i: the one after the
-        progress J of s."""
+        imagined states s (B, M, 3) at horizon step i (`_subgoal_index`)."""
+        return self.demo.states[self._subgoal_index(s, window, i)]
+
+    def _subgoal_index(self, s: torch.Tensor, window, i: int) -> torch.Tensor:
+        """(B,) the demo step `subgoal` takes for the imagined states s at
+        horizon step i: the one after their progress J."""
         J, _ = self.demo.progress(s, window)
-        return self.demo.states[(J + 1).clamp(max=self.demo.T - 1)]
+        return (J + 1).clamp(max=self.demo.T - 1)
+
+    @staticmethod
+    def _grasped_indices(m: int) -> list[int]:
+        idx = corner_indices(m)
+        return [idx["s1"], idx["s2"]]
 
     def current_progress(self, S, step: int) -> int:
         """The demo step J that state S (M, 3) matches, over the whole demo

@@ -348,3 +348,36 @@ def test_the_same_seed_gives_the_same_actions_idle_and_under_load():
     for a, b in zip(idle, loaded, strict=True):
         assert torch.equal(a.action, b.action)
         assert a.iterations == b.iterations
+
+
+def test_the_grasp_prior_heads_for_the_grasped_path_through_its_median():
+    """A demo whose left grasped corner is misread 20 cm high in one state:
+    from the state before it, the grasp prior's first move lifts the left
+    gripper by the whole step bound with the path as it is, and with the
+    path through a median of three states by the next state's rise (the
+    median takes a neighbour's value)."""
+    demo = np.stack([cloth(0.1 - 0.03 * j, z=0.01 * j) for j in range(8)])
+    demo[3, 0, 2] += 0.2
+    model = DemoModel(demo, ShiftRegistration(), RewardConfig())
+    ctx = SafetyContext(
+        edge_length=0.3,
+        workspace_lower=np.array([-0.4, -0.4, 0.0]),
+        workspace_upper=np.array([0.4, 0.5, 0.5]),
+    )
+
+    def first_move(frames):
+        mpc = Mpc(
+            dynamics=LinearDynamics(),
+            demo=model,
+            safety=SafetyConfig(tau_d_deg=180.0),
+            safety_ctx=ctx,
+            config=MpcConfig(horizon=2, grasp_path_median=frames),
+        )
+        S = torch.as_tensor(demo[2])
+        assert mpc.current_progress(S, 0) == 2
+        return mpc.action_prior(S)[0].numpy()
+
+    assert first_move(1)[2] == pytest.approx(0.03)  # clipped at the step bound
+    assert first_move(3)[2] == pytest.approx(0.02, abs=1e-6)
+    with pytest.raises(ValueError, match="grasp_path_median"):
+        MpcConfig(grasp_path_median=0)
