@@ -66,7 +66,8 @@ class TrackerConfig:
     # f_R's vertical error [m] for spread s [px]: measurement_vertical_base +
     # measurement_vertical_per_px2 * s^2, where both are given; then
     # measurement_base and measurement_per_px2 are its horizontal error (the
-    # norm of the x, y error), each fitted the same way (`bench tracker`).
+    # error in x and in y, each axis a sample of the fit), each fitted the
+    # same way (`bench tracker`).
     # None: one error for all three axes (the 3-D error's fit above).
     measurement_vertical_base: float | None = None
     measurement_vertical_per_px2: float | None = None

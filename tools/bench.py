@@ -822,7 +822,8 @@ def BenchTracker(
         diff = (measured - truth)[:, others]
         spreads.append(spread[:, others].ravel())
         errors.append(np.linalg.norm(diff, axis=-1).ravel())
-        horizontal.append(np.linalg.norm(diff[..., :2], axis=-1).ravel())
+        # Per axis, as the tracker applies it: x and y each a sample.
+        horizontal.append(np.abs(diff[..., :2]).ravel())
         vertical.append(np.abs(diff[..., 2]).ravel())
         # f_D's one-step error from the true state and the true move.
         moves = (grasped[1:] - grasped[:-1]).reshape(-1, 6)
@@ -832,7 +833,9 @@ def BenchTracker(
         one_step.append(e_fd[:, others].ravel())
     spread_all = np.concatenate(spreads)
     base, per_px2 = fit_measurement_model(spread_all, np.concatenate(errors))
-    h_base, h_per_px2 = fit_measurement_model(spread_all, np.concatenate(horizontal))
+    h_base, h_per_px2 = fit_measurement_model(
+        np.repeat(spread_all, 2), np.concatenate(horizontal)
+    )
     v_base, v_per_px2 = fit_measurement_model(spread_all, np.concatenate(vertical))
     configs = {
         variant: dc.replace(config, object_projection=variant == "object_projection")
