@@ -92,8 +92,9 @@ class MpcConfig:
     # running median of this many states (odd; 1: the demo's states as they
     # are). A hand's path is smooth, so a corner f_R misreads in one demo
     # frame is not a place to head for; the reward and the rules still read
-    # the demo's states as they are.
-    grasp_path_median: int = 1
+    # the demo's states as they are. The evidence for the value is in
+    # docs/method.md.
+    grasp_path_median: int = 3
 
     def __post_init__(self):
         if self.num_samples < 1 or self.horizon < 1:

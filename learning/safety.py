@@ -42,8 +42,9 @@ class SafetyConfig:
     # ... with each sphere of the hand kept this far [m] from the object
     # (rule 4's margin for the hand; the grasped point keeps object_margin).
     # Between two control steps a gripper overshoots its target by a few
-    # millimetres, so a hand planned to graze the object touches it.
-    hand_margin: float = 0.0
+    # millimetres, so a hand planned to graze the object touches it. The
+    # evidence for the value is in docs/method.md.
+    hand_margin: float = 0.01
     # Action bound [m] per axis per step.
     max_step: float = 0.03
     # The controller's view only (states estimated from the camera): judge

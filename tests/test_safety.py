@@ -157,7 +157,8 @@ def test_the_hand_margin_keeps_the_hand_that_far_from_the_object():
     S = flat_state()
     # The sphere's centre at x = -0.085: its surface 5 mm from the -x face.
     S[0] = [-0.135, 0.0, 0.03]
-    assert "object" not in violated(stay, S=S, ctx=ctx)
+    no_margin = SafetyConfig(hand_margin=0.0)
+    assert "object" not in violated(stay, S=S, ctx=ctx, config=no_margin)
     assert "object" in violated(stay, S=S, ctx=ctx, config=margin)
     S[0] = [-0.145, 0.0, 0.03]  # 15 mm: clear of the margin
     assert "object" not in violated(stay, S=S, ctx=ctx, config=margin)
