@@ -156,10 +156,14 @@ class Mpc:
         self.safety = safety
         self.ctx = safety_ctx
         self.config = config
-        # (T, 2, 3): where the grasp prior sends the grippers at each subgoal.
-        g = self._grasped_indices(demo.states.shape[-2])
+        # The grasped corners' indices, and (T, 2, 3) where the grasp prior
+        # sends the grippers at each subgoal.
+        idx = corner_indices(demo.states.shape[-2])
+        self._grasped = [idx["s1"], idx["s2"]]
         self._grasp_path = torch.as_tensor(
-            running_median(demo.states[:, g].cpu().numpy(), config.grasp_path_median),
+            running_median(
+                demo.states[:, self._grasped].cpu().numpy(), config.grasp_path_median
+            ),
             dtype=demo.states.dtype,
         )
 
@@ -204,9 +208,8 @@ class Mpc:
         s = S[None]
         for i in range(cfg.horizon):
             if cfg.prior == "grasp":
-                g = self._grasped_indices(s.shape[-2])
                 target = self._grasp_path[self._subgoal_index(s, window, i)]
-                a = (target - s[:, g]).flatten(-2)
+                a = (target - s[:, self._grasped]).flatten(-2)
             else:
                 a = self.dynamics.inverse(s, self.subgoal(s, window, i))
             a = self._clip(a)
@@ -231,11 +234,6 @@ class Mpc:
         horizon step i: the one after their progress J."""
         J, _ = self.demo.progress(s, window)
         return (J + 1).clamp(max=self.demo.T - 1)
-
-    @staticmethod
-    def _grasped_indices(m: int) -> list[int]:
-        idx = corner_indices(m)
-        return [idx["s1"], idx["s2"]]
 
     def current_progress(self, S, step: int) -> int:
         """The demo step J that state S (M, 3) matches, over the whole demo
