@@ -28,6 +28,11 @@ class SafetyConfig:
     # little more; tau_d_deg is then not used.
     tau_d_from_demo: bool = True
     tau_d_demo_margin_deg: float = 0.0
+    # ... and at most this [deg], whatever the demo's estimated states give:
+    # a move nearly against its side folds the cloth back on itself, and
+    # the demo's largest angle, a maximum over states estimated under
+    # occlusion, can exceed what the demo truly did.
+    tau_d_max_deg: float = 180.0
     # Moves shorter than this [m] have no direction: rule 2 passes them.
     min_move: float = 0.002
     # Rule 4: grippers stay this far [m] outside the object's box.
@@ -69,6 +74,10 @@ class SafetyConfig:
             raise ValueError(
                 f"safety.tau_d_deg must be in (0, 180], got {self.tau_d_deg}"
             )
+        if not 0 < self.tau_d_max_deg <= 180:
+            raise ValueError(
+                f"safety.tau_d_max_deg must be in (0, 180], got {self.tau_d_max_deg}"
+            )
         if not 0 <= self.tau_d_demo_margin_deg < 90:
             raise ValueError(
                 "safety.tau_d_demo_margin_deg must be in [0, 90), got "
@@ -82,12 +91,13 @@ class SafetyConfig:
     def for_demo(self, demo_states: np.ndarray) -> "SafetyConfig":
         """These rules for imitating the demo whose states (T, M, 3) are
         given: with tau_d_from_demo, rule 2's threshold is the demo's largest
-        move-to-side angle plus the margin (at most 180 degrees)."""
+        move-to-side angle plus the margin, at most tau_d_max_deg."""
         if not self.tau_d_from_demo:
             return self
         angle = demo_direction_angle(demo_states, self.min_move)
         return dc.replace(
-            self, tau_d_deg=min(180.0, angle + self.tau_d_demo_margin_deg)
+            self,
+            tau_d_deg=min(self.tau_d_max_deg, angle + self.tau_d_demo_margin_deg),
         )
 
 
