@@ -309,3 +309,16 @@ def test_rule_2_threshold_from_the_demo_ignores_one_misread_frame():
     assert demo_direction_angle(demo, 0.02) == 0.0
     with pytest.raises(ValueError, match="tau_d_demo_margin_deg"):
         SafetyConfig(tau_d_demo_margin_deg=-1.0)
+
+
+def test_rule_2_threshold_from_the_demo_stops_at_the_ceiling():
+    # The demo's moves held at 165 degrees for two moves: the threshold is
+    # the demo's angle below the ceiling and the ceiling above it.
+    demo = _demo_moving_at([10.0, 165.0, 165.0, 30.0])
+    assert demo_direction_angle(demo, 0.002) == pytest.approx(165.0, abs=1e-6)
+    capped = SafetyConfig(tau_d_max_deg=150.0).for_demo(demo)
+    assert capped.tau_d_deg == pytest.approx(150.0)
+    roomy = SafetyConfig(tau_d_max_deg=170.0).for_demo(demo)
+    assert roomy.tau_d_deg == pytest.approx(165.0, abs=1e-6)
+    with pytest.raises(ValueError, match="tau_d_max_deg"):
+        SafetyConfig(tau_d_max_deg=0.0)
