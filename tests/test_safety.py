@@ -322,3 +322,41 @@ def test_rule_2_threshold_from_the_demo_stops_at_the_ceiling():
     assert roomy.tau_d_deg == pytest.approx(165.0, abs=1e-6)
     with pytest.raises(ValueError, match="tau_d_max_deg"):
         SafetyConfig(tau_d_max_deg=0.0)
+
+
+def test_prediction_slack_grows_the_workspace_for_predicted_keypoints_only():
+    """prediction_slack: a predicted keypoint 1 cm below the floor or past
+    the edge passes with a 2 cm slack and fails without; a gripper target
+    past the edge fails either way."""
+    import dataclasses as dc
+
+    A = [0, 0, 0.02, 0, 0, 0.02]  # lift both grasped corners 2 cm
+    below = flat_state()
+    below[:, 2] = 0.02
+    below[[3, 4, 5], 2] = -0.02  # the far half predicted sinking 2 cm
+    past = flat_state()
+    past[:, 2] = 0.02
+    past[4, 1] = 0.41  # a far corner predicted 1 cm past the edge
+    loose = dc.replace(CTX, prediction_slack=0.02)
+    for S_next in (below, past):
+        assert "workspace" in violated(A, S_next=S_next)
+        assert "workspace" not in violated(A, S_next=S_next, ctx=loose)
+    S = flat_state() * [1.0, -1.0, 1.0] + [0.0, 0.39, 0.0]  # grasped edge at y 0.39
+    out = [0, 0.02, 0, 0, 0.02, 0]  # grippers to y = 0.41, past the edge
+    assert "workspace" not in violated([0] * 6, S=S, ctx=loose, S_next=S)
+    assert "workspace" in violated(out, S=S, ctx=loose, S_next=S)
+    with pytest.raises(ValueError, match="prediction_slack"):
+        SafetyConfig(prediction_slack=-0.01)
+
+
+def test_the_referee_judges_the_workspace_without_the_slack():
+    import dataclasses as dc
+
+    from fabric_imitation.scenarios.loader import LoadScenario
+    from fabric_imitation.tasks.referee import TaskSafetyContext
+
+    scenario = LoadScenario(scenario_name="box")
+    safety = dc.replace(scenario.safety, prediction_slack=0.02)
+    scenario = dc.replace(scenario, safety=safety)
+    assert TaskSafetyContext(scenario).prediction_slack == 0.0
+    assert TaskSafetyContext(scenario, estimated=True).prediction_slack == 0.02
