@@ -54,14 +54,6 @@ class SafetyConfig:
     hand_margin: float = 0.01
     # Action bound [m] per axis per step.
     max_step: float = 0.03
-    # The controller's view only: rule 3 judges the keypoints f_D predicts
-    # (not the gripper targets) against the workspace grown by this [m] on
-    # every side. f_D learned no table and no workspace edge: for a cloth
-    # flat on the table it predicts the points the grippers do not hold
-    # sinking up to 2 cm below it, and a far corner near the workspace's edge
-    # drifting out, where the cloth in fact stays on the table and is pulled
-    # in by the lift. Rule breaks are always scored without it.
-    prediction_slack: float = 0.0
     # The controller's view only (states estimated from the camera): judge
     # rule 2 also with the far corners dropped to the surface below them,
     # since a side hanging from a gripper hides its corner and f_R puts it
@@ -95,10 +87,6 @@ class SafetyConfig:
             )
         if self.hand_margin < 0:
             raise ValueError(f"safety.hand_margin must be >= 0, got {self.hand_margin}")
-        if self.prediction_slack < 0:
-            raise ValueError(
-                f"safety.prediction_slack must be >= 0, got {self.prediction_slack}"
-            )
         if self.max_step <= 0:
             raise ValueError(f"safety.max_step must be positive, got {self.max_step}")
 
@@ -172,9 +160,6 @@ class SafetyContext:
     # where one of them enters the object's box (SafetyConfig.hand_shape;
     # None: the grippers are points).
     hand_spheres: np.ndarray | None = None
-    # Rule 3 judges predicted keypoints (S_next) against the workspace grown
-    # by this [m] (SafetyConfig.prediction_slack; 0: as it is).
-    prediction_slack: float = 0.0
 
 
 RULES = ("bounds", "distance", "direction", "workspace", "object")
@@ -295,27 +280,17 @@ def _outside_workspace(S, A, S_next, grippers, ctx: SafetyContext) -> torch.Tens
         moved[..., idx["s1"], :] = grippers[..., 0, :]
         moved[..., idx["s2"], :] = grippers[..., 1, :]
         points = moved  # the grasped corners are the gripper targets
-        outside = _outside_box(points, lo, hi, ctx)
     else:
-        # The predicted state, in the box grown by the slack, and the
-        # gripper targets themselves, in the box as it is.
-        slack = ctx.prediction_slack
-        outside = _outside_box(S_next, lo - slack, hi + slack, ctx) | _outside_box(
-            grippers.expand(*S_next.shape[:-2], *grippers.shape[-2:]), lo, hi, ctx
+        # The predicted state and the gripper targets themselves.
+        points = torch.cat(
+            [S_next, grippers.expand(*S_next.shape[:-2], *grippers.shape[-2:])], -2
         )
-    # Grippers never go below the table top.
-    return outside | (grippers[..., 2] < 0.0).any(-1)
-
-
-def _outside_box(points, lo, hi, ctx: SafetyContext) -> torch.Tensor:
-    """True (...) where any of points (..., n, 3), in the states' frame,
-    lies outside the world box [lo, hi]."""
     px, py, pz = points[..., 0], points[..., 1], points[..., 2]
     if ctx.frame_pose is not None:
         x, y, yaw = (float(v) for v in ctx.frame_pose)
         c, s = math.cos(yaw), math.sin(yaw)
         px, py = c * px - s * py + x, s * px + c * py + y
-    return (
+    outside = (
         (px < lo[0])
         | (px > hi[0])
         | (py < lo[1])
@@ -323,6 +298,8 @@ def _outside_box(points, lo, hi, ctx: SafetyContext) -> torch.Tensor:
         | (pz < lo[2])
         | (pz > hi[2])
     ).any(-1)
+    # Grippers never go below the table top.
+    return outside | (grippers[..., 2] < 0.0).any(-1)
 
 
 def _surface_below(p: torch.Tensor, ctx: SafetyContext) -> torch.Tensor:

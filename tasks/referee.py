@@ -133,7 +133,6 @@ def TaskSafetyContext(scenario: Scenario, *, estimated: bool = False) -> SafetyC
             if estimated and has_object and scenario.safety.hand_shape
             else None
         ),
-        prediction_slack=scenario.safety.prediction_slack if estimated else 0.0,
     )
 
 
