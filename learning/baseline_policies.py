@@ -329,17 +329,19 @@ class TcnMpc(Mpc):
         z = self.b.tcn_embed(torch.stack([S, last]), S)
         return float((z[0] - z[1]).norm()) <= self._end_distance
 
+    def _aligned_index(self, i) -> int:
+        """The demo step time-aligned with rollout step i."""
+        return min(self._step + i + 1, self.demo.T - 1)
+
     def _aligned(self, i) -> torch.Tensor:
-        return self.demo.states[min(self._step + i + 1, self.demo.T - 1)]
+        return self.demo.states[self._aligned_index(i)]
 
     def current_progress(self, S, step):
         self._step = step
         return min(step, self.demo.T - 1)
 
     def _subgoal_index(self, s, window, i):
-        return torch.full(
-            (len(s),), min(self._step + i + 1, self.demo.T - 1), dtype=torch.long
-        )
+        return torch.full((len(s),), self._aligned_index(i), dtype=torch.long)
 
     @torch.no_grad()
     def rollout(self, S, X, window):
