@@ -539,11 +539,6 @@ def _WireLoop(builder, station, estimator, reward, controller, targets):
         builder.Connect(
             estimator.GetOutputPort("keypoints"), system.GetInputPort("keypoints")
         )
-    if controller.HasInputPort("keypoint_variance"):
-        builder.Connect(
-            estimator.GetOutputPort("keypoint_variance"),
-            controller.GetInputPort("keypoint_variance"),
-        )
     return pose, grippers
 
 

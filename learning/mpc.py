@@ -309,17 +309,6 @@ class Mpc:
         return {rule: int(v[rule].any(0).sum()) for rule in RULES}
 
     @torch.no_grad()
-    def _far_corner_radius(self, variance) -> np.ndarray | None:
-        """Rule 2's region around s3 and s4 (SafetyContext.far_corner_radius)
-        from the tracker's variance (M, 3), or None."""
-        k = self.safety.far_corner_sigmas
-        if k <= 0 or variance is None:
-            return None
-        v = np.asarray(variance, dtype=np.float64).reshape(-1, 3)
-        idx = corner_indices(v.shape[0])
-        far = v[[idx["s3"], idx["s4"]]].max(-1)
-        return k * np.sqrt(np.where(np.isfinite(far), far, 0.0))
-
     def solve(
         self,
         S,
@@ -328,7 +317,6 @@ class Mpc:
         seed: int = 0,
         frame_pose=None,
         noise=None,
-        variance=None,
     ) -> MpcResult:
         """One control step from state S (M, 3).
 
@@ -336,10 +324,7 @@ class Mpc:
         workspace rule's world box is checked (default: the one given at
         construction). `noise`: the previous step's final (mu, variance)
         (`MpcResult.noise`), used with `warm_start`, shifted by one step;
-        None: start from (0, sigma0^2). `variance` (M, 3): the keypoint
-        tracker's variance of S per axis [m^2], which rule 2 reads with
-        `safety.far_corner_sigmas` (None, or NaN before the tracker's
-        first update: S is taken as exact).
+        None: start from (0, sigma0^2).
         """
         cfg = self.config
         t0 = time.perf_counter()
@@ -349,7 +334,6 @@ class Mpc:
             frame_pose=self.ctx.frame_pose
             if frame_pose is None
             else np.asarray(frame_pose, float),
-            far_corner_radius=self._far_corner_radius(variance),
         )
         S = torch.as_tensor(S, dtype=torch.float32)
         J0 = self.current_progress(S, step)

@@ -65,12 +65,6 @@ class SafetyConfig:
     # seeing the towel from above, puts the far corner up by the grippers,
     # where a move down and back looks safe but points far off the true
     # side.
-    # The controller's view only: judge rule 2 with each far corner anywhere
-    # within this many of the keypoint tracker's standard deviations of it
-    # (SafetyContext.far_corner_radius): a move passes only if its angle plus
-    # the most the corner's uncertainty can turn the side, asin(r / |side|),
-    # stays below tau_d. 0: the estimate alone, the paper's.
-    far_corner_sigmas: float = 0.0
 
     def __post_init__(self):
         if not 0 < self.tau_c < self.tau_f:
@@ -90,11 +84,6 @@ class SafetyConfig:
             raise ValueError(
                 "safety.tau_d_demo_margin_deg must be in [0, 90), got "
                 f"{self.tau_d_demo_margin_deg}"
-            )
-        if not (math.isfinite(self.far_corner_sigmas) and self.far_corner_sigmas >= 0):
-            raise ValueError(
-                "safety.far_corner_sigmas must be finite and >= 0, got "
-                f"{self.far_corner_sigmas}"
             )
         if self.hand_margin < 0:
             raise ValueError(f"safety.hand_margin must be >= 0, got {self.hand_margin}")
@@ -171,10 +160,6 @@ class SafetyContext:
     # where one of them enters the object's box (SafetyConfig.hand_shape;
     # None: the grippers are points).
     hand_spheres: np.ndarray | None = None
-    # Radius [m] of the region around each far corner, s3 and s4 (2,), where
-    # rule 2 judges it may be (SafetyConfig.far_corner_sigmas times the
-    # tracker's standard deviation; None: at its estimate).
-    far_corner_radius: np.ndarray | None = None
 
 
 RULES = ("bounds", "distance", "direction", "workspace", "object")
@@ -206,25 +191,12 @@ def rule_violations(
     out["distance"] = (d <= config.tau_c * L) | (d >= config.tau_f * L)
     cos_max = math.cos(math.radians(config.tau_d_deg))
 
-    radius = ctx.far_corner_radius
-
-    def bad_direction(a, edge, r=None):
+    def bad_direction(a, edge):
         na, ne = a.norm(dim=-1), edge.norm(dim=-1)
         cos = (a * edge).sum(-1) / (na * ne).clamp_min(1e-12)
-        if r is None or r <= 0:
-            return (na > config.min_move) & (cos <= cos_max)
-        # The far corner anywhere within r turns the side by at most
-        # asin(r / |side|).
-        turn = torch.asin((r / ne.clamp_min(1e-12)).clamp(max=1.0))
-        angle = torch.acos(cos.clamp(-1.0, 1.0))
-        return (na > config.min_move) & (
-            angle + turn >= math.radians(config.tau_d_deg)
-        )
+        return (na > config.min_move) & (cos <= cos_max)
 
-    r3, r4 = (None, None) if radius is None else (float(radius[0]), float(radius[1]))
-    out["direction"] = bad_direction(a_l, s1 - s3, r3) | bad_direction(
-        a_r, s2 - s4, r4
-    )
+    out["direction"] = bad_direction(a_l, s1 - s3) | bad_direction(a_r, s2 - s4)
     if ctx.far_corners_may_hang:
         floor3, floor4 = _surface_below(s3, ctx), _surface_below(s4, ctx)
         for fraction in (0.5, 1.0):
@@ -232,8 +204,8 @@ def rule_violations(
             s4d = _dropped(s4, fraction, ctx, floor4)
             out["direction"] = (
                 out["direction"]
-                | bad_direction(a_l, s1 - s3d, r3)
-                | bad_direction(a_r, s2 - s4d, r4)
+                | bad_direction(a_l, s1 - s3d)
+                | bad_direction(a_r, s2 - s4d)
             )
         # A side hanging free: its far corner straight below the gripper, so
         # the edge points straight up.

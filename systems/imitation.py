@@ -94,9 +94,7 @@ class KeypointEstimator(LeafSystem):
     Input ports: ``mask`` (ImageGrey8U), ``depth`` (ImageDepth32F),
     ``object_pose`` (RigidTransform X_WO), ``grippers`` (6, optional: left
     and right gripper positions in world).
-    Output ports: ``keypoints`` (3M, object frame; from state),
-    ``keypoint_variance`` (3M, the tracker's variance per keypoint and axis
-    [m^2]; NaN without a tracker or before its first update).
+    Output ports: ``keypoints`` (3M, object frame; from state).
 
     Args:
         priors: anything with ``keypoints(mask, depth) -> (M, 3)`` world
@@ -142,7 +140,6 @@ class KeypointEstimator(LeafSystem):
         self.DeclarePeriodicDiscreteUpdateEvent(period, offset, self._update)
         self.DeclareForcedDiscreteUpdateEvent(self._update)
         self.DeclareStateOutputPort("keypoints", self._state)
-        self.DeclareStateOutputPort("keypoint_variance", self._variance)
 
     def _update(self, context, discrete_state) -> EventStatus:
         mask = self._mask.Eval(context).data[:, :, 0]
@@ -427,9 +424,7 @@ class MpcController(StepController):
     step (see StepController for ports). Ends the episode when the
     termination classifier fires, when no feasible action exists, or at the
     step cap. The rules use the object pose of the
-    step. An optional input ``keypoint_variance`` (3M, the keypoint
-    tracker's) gives rule 2 the far corners' uncertainty
-    (`safety.far_corner_sigmas`)."""
+    step."""
 
     def __init__(self, *, mpc, seed: int = 0, **kwargs):
         # memory: [mu (h x 6), variance (h x 6)]: the noise distribution
@@ -439,9 +434,6 @@ class MpcController(StepController):
         super().__init__(memory_size=12 * self._h, **kwargs)
         self._mpc = mpc
         self._seed = seed
-        self._variance = self.DeclareVectorInputPort(
-            "keypoint_variance", 3 * self._m
-        )
 
     def Finished(self, S, steps) -> int | None:
         return TERMINATED_CLASSIFIER if self._mpc.finished(S, steps) else None
@@ -455,9 +447,6 @@ class MpcController(StepController):
             seed=self._seed,
             frame_pose=pose,
             noise=noise,
-            variance=self._variance.Eval(context).reshape(self._m, 3)
-            if self._variance.HasValue(context)
-            else None,
         )
         if not result.feasible:
             _LOG.warning(
