@@ -182,11 +182,7 @@ def PrepareImitation(
     states = DemoStates(priors, demo, _Tracker(scenario, priors))
     model, info = learn_from_demo(states, priors.prior_states, scenario.reward)
     safety = scenario.safety.for_demo(states)
-    info = {
-        **info,
-        "tau_d_deg": round(safety.tau_d_deg, 2),
-        "tau_i": round(model.tau_i, 3),
-    }
+    info = {**info, "tau_d_deg": round(safety.tau_d_deg, 2)}
     nets = None
     if baselines:
         from fabric_imitation.learning.baselines import (

@@ -33,11 +33,6 @@ class RewardConfig:
     # Termination: IoU with the last demo state above this, and J >= T - 1 -
     # done_progress_slack.
     tau_i: float = 0.75
-    # ... at most the IoU the demo's second-to-last state holds with its
-    # last: a demo whose own last step changes the top-down polygon more
-    # than 1 - tau_i (the towel released over a bar drops onto it) can
-    # still end there. Off: tau_i as it is, the paper's.
-    tau_i_from_demo: bool = False
     # Termination's progress test passes from J = T - 1 - this on (0: J =
     # T - 1, the paper's). J, the argmax over demo states, moves back and
     # forth by one state where consecutive demo states differ by less than
@@ -187,11 +182,6 @@ class DemoModel:
         self.config = config
         self.polygons = self.states[..., :2]
         self.centres = self.polygons.mean(-2)
-        # The termination's IoU threshold (RewardConfig.tau_i_from_demo).
-        self.tau_i = config.tau_i
-        if config.tau_i_from_demo and self.T >= 2:
-            last_step = float(self.similarity(self.states[-2], (self.T - 1, self.T))[0])
-            self.tau_i = min(config.tau_i, last_step)
 
     def similarity(self, S: torch.Tensor, window: tuple[int, int] | None = None):
         """IoU (..., W) of the top-down polygons of S with demo states
@@ -239,14 +229,13 @@ class DemoModel:
 
     @torch.no_grad()
     def done(self, S: torch.Tensor) -> torch.Tensor:
-        """Termination classifier: IoU with S_E^T above tau_I (`self.tau_i`)
-        and J >= T - 1 - `done_progress_slack` (J = T - 1 with the paper's
-        slack 0)."""
+        """Termination classifier: IoU with S_E^T above tau_I and J >= T - 1
+        - `done_progress_slack` (J = T - 1 with the paper's slack 0)."""
         S = torch.as_tensor(S, dtype=torch.float32)
         progress, _ = self.progress(S)
         last_iou = self.similarity(S, (self.T - 1, self.T))[..., 0]
         first = self.T - 1 - self.config.done_progress_slack
-        return (last_iou > self.tau_i) & (progress >= first)
+        return (last_iou > self.config.tau_i) & (progress >= first)
 
 
 # f_A's training inputs besides the states (RewardConfig fields).

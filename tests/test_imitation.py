@@ -156,25 +156,6 @@ def test_termination_progress_slack_lets_the_state_before_the_last_end():
         RewardConfig(done_progress_slack=-1)
 
 
-def test_termination_threshold_from_the_demos_last_step():
-    """With tau_i_from_demo the termination's IoU threshold is at most the
-    IoU the demo's second-to-last state holds with its last: a demo that
-    ends with a 15 cm drop of its polygon (IoU 1/3) can end at a state
-    halfway there; a demo whose last step keeps IoU above tau_i is judged
-    by tau_i as before."""
-    dropped = np.concatenate([pulled_demo(n=7), [square(0, 0.1 - 0.18 - 0.15, 0.3)]])
-    halfway = torch.as_tensor(square(0, 0.1 - 0.18 - 0.075, 0.3))  # IoU 0.6
-    assert demo_model(dropped, tau_i=0.75).tau_i == 0.75
-    assert not bool(demo_model(dropped, tau_i=0.75).done(halfway))
-    from_demo = demo_model(dropped, tau_i=0.75, tau_i_from_demo=True)
-    assert from_demo.tau_i == pytest.approx(1 / 3, abs=1e-4)
-    assert bool(from_demo.done(halfway))
-    # The second-to-last state itself holds IoU 1/3, not above it.
-    assert not bool(from_demo.done(torch.as_tensor(dropped[-2])))
-    # A 3 cm last step (IoU 0.82 > 0.75): tau_i as it is.
-    assert demo_model(pulled_demo(), tau_i_from_demo=True).tau_i == 0.75
-
-
 def test_d_p_on_hand_made_states():
     states = pulled_demo()
     S = states[3].copy()
