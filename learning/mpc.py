@@ -95,12 +95,6 @@ class MpcConfig:
     # the demo's states as they are. The evidence for the value is in
     # docs/method.md.
     grasp_path_median: int = 3
-    # The rollouts read f_D relative to no move: S + f_D(S, a) - f_D(S, 0)
-    # (`ZeroMoveAnchored`). A cloth the grippers do not move stays where it
-    # is (quasi-static steps), but f_D, learned without a table, moves a
-    # resting cloth by 0.7-1.6 cm per step on the shipped demos' states.
-    # False: f_D as it is, the paper's.
-    anchor_zero_move: bool = False
 
     def __post_init__(self):
         if self.num_samples < 1 or self.horizon < 1:
@@ -147,24 +141,6 @@ class MpcResult:
     noise: tuple[torch.Tensor, torch.Tensor] | None = None
 
 
-class ZeroMoveAnchored:
-    """f_D read relative to no move: forward(S, A) = S + f_D(S, A) -
-    f_D(S, 0), so that no move predicts no change; f_I as it is."""
-
-    def __init__(self, dynamics: Dynamics):
-        self.dynamics = dynamics
-
-    def forward(self, S: torch.Tensor, A: torch.Tensor) -> torch.Tensor:
-        S = torch.as_tensor(S, dtype=torch.float32)
-        A = torch.as_tensor(A, dtype=torch.float32)
-        moved = self.dynamics.forward(S, A)
-        still = self.dynamics.forward(S, torch.zeros_like(A))
-        return S + (moved - still)
-
-    def inverse(self, S: torch.Tensor, S_next: torch.Tensor) -> torch.Tensor:
-        return self.dynamics.inverse(S, S_next)
-
-
 class Mpc:
     def __init__(
         self,
@@ -175,9 +151,7 @@ class Mpc:
         safety_ctx: SafetyContext,
         config: MpcConfig,
     ):
-        self.dynamics = (
-            ZeroMoveAnchored(dynamics) if config.anchor_zero_move else dynamics
-        )
+        self.dynamics = dynamics
         self.demo = demo
         self.safety = safety
         self.ctx = safety_ctx

@@ -365,35 +365,6 @@ def test_the_grasp_prior_heads_for_the_subgoals_grasped_corners():
         MpcConfig(prior="replay")
 
 
-class Drifting(Linear):
-    """`Linear` plus a drift of every keypoint by 1 cm in +y, even for no
-    move (f_D's error on a resting cloth)."""
-
-    def forward(self, S, A):
-        return super().forward(S, A) + torch.tensor([0.0, 0.01, 0.0])
-
-
-def test_anchored_rollouts_predict_no_change_for_no_move():
-    from fabric_imitation.learning.mpc import ZeroMoveAnchored
-
-    states = pulled_demo(n=8)
-    S = torch.as_tensor(states[0])[None].expand(3, -1, -1)
-    A = torch.tensor([[0.0] * 6, [0.0, -0.02, 0.01] * 2, [0.01, 0, 0, 0, 0, 0]])
-    anchored = ZeroMoveAnchored(Drifting())
-    torch.testing.assert_close(anchored.forward(S[:1], A[:1]), S[:1])
-    torch.testing.assert_close(anchored.forward(S, A), Linear().forward(S, A))
-    # The MPC reads f_D so only where asked.
-    assert small_mpc(Drifting(), states).dynamics.__class__ is Drifting
-    mpc = Mpc(
-        dynamics=Drifting(),
-        demo=demo_model(states),
-        safety=SafetyConfig(),
-        safety_ctx=CTX,
-        config=MpcConfig(num_samples=50, horizon=2, elites=5, anchor_zero_move=True),
-    )
-    assert isinstance(mpc.dynamics, ZeroMoveAnchored)
-
-
 def test_mpc_reports_no_feasible_action():
     states = pulled_demo()
     # The far edge lies 15 cm beyond the workspace: no move brings it back in
