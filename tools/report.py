@@ -515,7 +515,11 @@ def _plot(table: dict, path: Path) -> None:
     cells = {(r["scenario"], r["method"]): r for r in table["rows"]}
     width = 0.8 / len(methods)
     width_in = 3 + 0.45 * len(scenarios) * len(methods)
-    fig, ax = plt.subplots(figsize=(max(5.0, width_in), 3.2))
+    # Labels turned 30 degrees, so that long ones (a scenario with its
+    # --scenario-text) do not run into each other; the figure grows to
+    # hold them.
+    label_in = 0.5 * 0.055 * max(len(s) for s in scenarios)
+    fig, ax = plt.subplots(figsize=(max(5.0, width_in), 3.2 + label_in))
     paper_label = "paper Table I"
     for k, method in enumerate(methods):
         x = np.arange(len(scenarios)) + (k - (len(methods) - 1) / 2) * width
@@ -532,7 +536,9 @@ def _plot(table: dict, path: Path) -> None:
         if not np.all(np.isnan(paper)):
             ax.plot(x, paper, "kx", label=paper_label)
             paper_label = None
-    ax.set_xticks(np.arange(len(scenarios)), scenarios)
+    ax.set_xticks(
+        np.arange(len(scenarios)), scenarios, rotation=30, ha="right", fontsize=7
+    )
     ax.set_ylabel("success rate (Wilson 95 %)")
     ax.set_ylim(0, 1.05)
     ax.set_title(
