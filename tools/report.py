@@ -516,9 +516,9 @@ def _plot(table: dict, path: Path) -> None:
     width = 0.8 / len(methods)
     width_in = 3 + 0.45 * len(scenarios) * len(methods)
     # Labels turned 30 degrees, so that long ones (a scenario with its
-    # --scenario-text) do not run into each other; the figure grows to
-    # hold them.
-    label_in = 0.5 * 0.055 * max(len(s) for s in scenarios)
+    # --scenario-text) do not run into each other; the figure grows by the
+    # longest label's height (0.055 inch a character at font size 7).
+    label_in = math.sin(math.radians(30)) * 0.055 * max(len(s) for s in scenarios)
     fig, ax = plt.subplots(figsize=(max(5.0, width_in), 3.2 + label_in))
     paper_label = "paper Table I"
     for k, method in enumerate(methods):
