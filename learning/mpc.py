@@ -27,6 +27,7 @@ from fabric_imitation.learning.safety import (
     RULES,
     SafetyConfig,
     SafetyContext,
+    direction_angles,
     rule_violations,
     valid_actions,
 )
@@ -95,6 +96,17 @@ class MpcConfig:
     # the demo's states as they are. The evidence for the value is in
     # docs/method.md.
     grasp_path_median: int = 3
+    # A cost near rule 2's edge: each gripper's move within `edge_band_deg`
+    # of rule 2's threshold tau_d (its angle with its side, on the state it
+    # leaves, as estimated or predicted) costs up to `edge_cost` demo states
+    # of reward, rising linearly from 0 at tau_d - edge_band_deg to
+    # `edge_cost` at tau_d, at every step of the rollouts (discounted as the
+    # reward). The rule stays a hard one; among the sequences that keep it,
+    # those that keep away from its edge, where an estimation error turns a
+    # move the controller allows into one the true cloth does not, are
+    # preferred unless they lose more reward. 0: off (the paper's).
+    edge_cost: float = 0.0
+    edge_band_deg: float = 15.0
 
     def __post_init__(self):
         if self.num_samples < 1 or self.horizon < 1:
@@ -113,6 +125,12 @@ class MpcConfig:
             raise ValueError(f"mpc.sigma0 must be positive, got {self.sigma0}")
         if self.prior not in ACTION_PRIORS:
             raise ValueError(f"mpc.prior must be inverse or grasp, got {self.prior!r}")
+        if self.edge_cost < 0:
+            raise ValueError(f"mpc.edge_cost must be >= 0, got {self.edge_cost}")
+        if not 0 < self.edge_band_deg < 180:
+            raise ValueError(
+                f"mpc.edge_band_deg must be in (0, 180), got {self.edge_band_deg}"
+            )
         if self.grasp_path_median < 1 or self.grasp_path_median % 2 == 0:
             raise ValueError(
                 "mpc.grasp_path_median must be an odd number of states >= 1, "
@@ -283,6 +301,15 @@ class Mpc:
             bad |= v
         return bad.sum(0).float()
 
+    def _edge_cost(self, states: torch.Tensor, X: torch.Tensor) -> torch.Tensor:
+        """(h, n) the cost near rule 2's edge (`MpcConfig.edge_cost`) of
+        sequences X (n, h, 6) from the states each step leaves (h, n, M, 3)."""
+        cfg = self.config
+        angle = direction_angles(states, X.transpose(0, 1), self.safety.min_move)
+        start = self.safety.tau_d_deg - cfg.edge_band_deg
+        near = ((angle - start) / cfg.edge_band_deg).clamp(0.0, 1.0)
+        return cfg.edge_cost * near.sum(-1)
+
     @torch.no_grad()
     def rollout(self, S: torch.Tensor, X: torch.Tensor, window):
         """Discounted rewards (N,) and violation counts (N,) of sequences X.
@@ -297,6 +324,8 @@ class Mpc:
         if scored.any():
             # One batched reward call for all the h * n predicted states.
             r, _ = self.demo.reward(states[1:, scored], window)  # (h, n)
+            if cfg.edge_cost > 0:
+                r = r - self._edge_cost(states[:-1, scored], X[scored])
             discount = cfg.gamma ** torch.arange(cfg.horizon, dtype=r.dtype)
             reward[scored] = (discount[:, None] * r).sum(0)
         return reward, cost

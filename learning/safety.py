@@ -327,6 +327,21 @@ def _dropped(
     return torch.cat([p[..., :2], z[..., None]], -1)
 
 
+def direction_angles(S: torch.Tensor, A: torch.Tensor, min_move: float) -> torch.Tensor:
+    """(..., 2) rule 2's measure [deg]: the angle of a_L with s1 - s3 and of
+    a_R with s2 - s4 in state S (..., M, 3), 0 for a move shorter than
+    `min_move` [m] (it has no direction)."""
+    idx = corner_indices(S.shape[-2])
+    out = []
+    for a, g, f in ((A[..., :3], "s1", "s3"), (A[..., 3:], "s2", "s4")):
+        side = S[..., idx[g], :] - S[..., idx[f], :]
+        na, ns = a.norm(dim=-1), side.norm(dim=-1)
+        cos = (a * side).sum(-1) / (na * ns).clamp_min(1e-12)
+        angle = torch.rad2deg(torch.acos(cos.clamp(-1.0, 1.0)))
+        out.append(torch.where(na > min_move, angle, torch.zeros_like(angle)))
+    return torch.stack(out, -1)
+
+
 def valid_actions(
     S: torch.Tensor,
     A: torch.Tensor,

@@ -419,6 +419,43 @@ def test_keypoint_estimator_system_outputs_object_frame_keypoints():
     assert priors.seen == [((24, 32), (24, 32))]
 
 
+def test_the_edge_cost_charges_moves_near_rule_2s_threshold():
+    """mpc.edge_cost: a move 90 degrees from its side, with tau_d 100 and a
+    15-degree band, costs a third of edge_cost at its step; a move along
+    the side or no move costs nothing; the rollout's reward is the reward
+    without it less the discounted cost."""
+    import math
+
+    states = pulled_demo(n=8)
+    S = torch.as_tensor(states[0])
+
+    def mpc(**config):
+        return Mpc(
+            dynamics=Linear(),
+            demo=demo_model(states),
+            safety=SafetyConfig(tau_d_deg=100.0),
+            safety_ctx=CTX,
+            config=MpcConfig(num_samples=2, horizon=2, elites=1, **config),
+        )
+
+    # s1 - s3 points to -y (the grasped edge pulled towards -y): +x is 90
+    # degrees from it, -y 0 degrees.
+    X = torch.zeros(2, 2, 6, dtype=S.dtype)
+    X[0, 0, 0] = 0.02  # left gripper along +x at step 0
+    X[1, :, 1] = -0.02  # both steps along -y: along the side
+    on = mpc(edge_cost=3.0, edge_band_deg=15.0)
+    states_h = on._predicted_states(S, X)
+    cost = on._edge_cost(states_h[:-1], X)
+    torch.testing.assert_close(cost, torch.tensor([[1.0, 0.0], [0.0, 0.0]]))
+    with_cost, _ = on.rollout(S, X, on._window(0))
+    without, _ = mpc().rollout(S, X, on._window(0))
+    assert float(without[0] - with_cost[0]) == pytest.approx(1.0, abs=1e-5)
+    assert float(without[1] - with_cost[1]) == pytest.approx(0.0, abs=1e-6)
+    assert math.isfinite(float(with_cost[0]))
+    with pytest.raises(ValueError, match="edge_cost"):
+        MpcConfig(edge_cost=-1.0)
+
+
 def test_each_ablation_changes_only_what_it_names():
     """No MPC applies the prior's first action; No Prior samples around zero
     instead of around the prior; No Cost takes an action that breaks a rule

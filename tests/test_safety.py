@@ -72,6 +72,15 @@ def test_move_direction_against_the_edge():
     assert "direction" not in violated([0, 0.001, 0, 0, 0, 0])
 
 
+def test_direction_angles_are_rule_2s_measure():
+    from fabric_imitation.learning.safety import direction_angles
+
+    t = __import__("torch").as_tensor
+    A = t([[0, 0.02, 0, 0.02, 0, 0], [0, -0.02, 0, 0, 0.001, 0]])
+    angles = direction_angles(t(flat_state()), A, CFG.min_move)
+    np.testing.assert_allclose(angles.numpy(), [[180.0, 90.0], [0.0, 0.0]], atol=0.05)
+
+
 def test_cloth_inside_the_workspace():
     S = flat_state() + [0.0, -0.39, 0.0]
     assert "workspace" in violated([0, -0.02, 0, 0, -0.02, 0], S=S)
