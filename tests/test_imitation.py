@@ -448,7 +448,7 @@ def test_the_edge_cost_charges_moves_near_rule_2s_threshold():
     cost = on._edge_cost(states_h[:-1], X)
     torch.testing.assert_close(cost, torch.tensor([[1.0, 0.0], [0.0, 0.0]]))
     with_cost, _ = on.rollout(S, X, on._window(0))
-    without, _ = mpc().rollout(S, X, on._window(0))
+    without, _ = mpc(edge_cost=0.0).rollout(S, X, on._window(0))
     assert float(without[0] - with_cost[0]) == pytest.approx(1.0, abs=1e-5)
     assert float(without[1] - with_cost[1]) == pytest.approx(0.0, abs=1e-6)
     assert math.isfinite(float(with_cost[0]))
