@@ -66,14 +66,6 @@ class MpcConfig:
     use_cost: bool = True
     # Episode step cap as a multiple of the demo length (plus 5).
     step_cap_factor: float = 2.0
-    # The episode ends ("stalled") once the demo reward R_E of the state has
-    # not risen by `stall_gain` (in demo states: R_E counts J) above its best
-    # for this many steps, counted from the first state whose progress J
-    # reaches the demo's second-to-last state (the last one, after the demo's
-    # release, is out of reach while the grippers hold the cloth); 0: never
-    # (the paper's: the classifier and the step cap end an episode).
-    stall_steps: int = 0
-    stall_gain: float = 1.0
     # An action of the prior that breaks a rule is replaced by the nearest
     # valid one among this many perturbations of it (Mpc.action_prior);
     # repair_prior false: the prior is used as it comes (the paper's).
@@ -143,12 +135,6 @@ class MpcConfig:
             raise ValueError(
                 f"mpc.edge_band_deg must be in (0, 180), got {self.edge_band_deg}"
             )
-        if self.stall_steps < 0:
-            raise ValueError(
-                f"mpc.stall_steps must be non-negative, got {self.stall_steps}"
-            )
-        if not self.stall_gain > 0:
-            raise ValueError(f"mpc.stall_gain must be positive, got {self.stall_gain}")
         if self.grasp_path_median < 1 or self.grasp_path_median % 2 == 0:
             raise ValueError(
                 "mpc.grasp_path_median must be an odd number of states >= 1, "
@@ -280,21 +266,6 @@ class Mpc:
     def finished(self, S, steps: int) -> bool:
         """The termination classifier on state S (M, 3)."""
         return bool(self.demo.done(S))
-
-    def stall(
-        self, S, best: float, since: int, armed: bool
-    ) -> tuple[float, int, bool]:
-        """The stall count after state S (M, 3): (the best R_E since the
-        count started, steps since R_E last rose by `stall_gain` above it,
-        whether the count has started). It starts at the first state whose
-        progress J reaches the demo's second-to-last state."""
-        r, J = self.demo.reward(torch.as_tensor(S, dtype=torch.float32)[None])
-        r, J = float(r[0]), int(J[0])
-        if not armed:
-            return r, 0, J >= self.demo.T - 2
-        if r >= best + self.config.stall_gain:
-            return r, 0, True
-        return best, since + 1, True
 
     def _nearest_valid(self, s, a, gen) -> torch.Tensor:
         cfg = self.config

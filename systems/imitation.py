@@ -27,8 +27,6 @@ _LOG = logging.getLogger("fabric_imitation.mpc")
 RUNNING, TERMINATED_CLASSIFIER, TERMINATED_INFEASIBLE, TERMINATED_STEP_CAP = 0, 1, 2, 3
 # Ended by the benchmark's referee (systems/referee.py, input ``halt``).
 TERMINATED_RULE_BREAK, TERMINATED_COLLISION = 4, 5
-# The demo reward stopped rising (MpcConfig.stall_steps).
-TERMINATED_STALLED = 6
 TERMINATION_NAMES = {
     RUNNING: "running",
     TERMINATED_CLASSIFIER: "classifier",
@@ -36,7 +34,6 @@ TERMINATION_NAMES = {
     TERMINATED_STEP_CAP: "step cap",
     TERMINATED_RULE_BREAK: "rule_break",
     TERMINATED_COLLISION: "collision",
-    TERMINATED_STALLED: "stalled",
 }
 
 
@@ -425,9 +422,9 @@ class StepController(LeafSystem):
 class MpcController(StepController):
     """Sampling MPC following the demo (learning/mpc.py), once per control
     step (see StepController for ports). Ends the episode when the
-    termination classifier fires, when no feasible action exists, when the
-    demo reward has stalled (`MpcConfig.stall_steps`) or at the step cap.
-    The rules use the object pose of the step."""
+    termination classifier fires, when no feasible action exists, or at the
+    step cap. The rules use the object pose of the
+    step."""
 
     def __init__(self, *, mpc, seed: int = 0, **kwargs):
         # memory: [mu (h x 6), variance (h x 6)]: the noise distribution
@@ -437,23 +434,11 @@ class MpcController(StepController):
         super().__init__(memory_size=12 * self._h, **kwargs)
         self._mpc = mpc
         self._seed = seed
-        # [the best R_E since the stall count started, steps since it last
-        # rose by stall_gain, 1 once the count has started] (Mpc.stall)
-        self._state["stall"] = self.DeclareDiscreteState(3)
 
     def Finished(self, S, steps) -> int | None:
         return TERMINATED_CLASSIFIER if self._mpc.finished(S, steps) else None
 
     def Decide(self, context, S, pose, steps, progress):
-        patience = self._mpc.config.stall_steps
-        if patience:
-            best, since, armed = self._get(context, "stall")
-            best, since, armed = self._mpc.stall(S, best, int(since), bool(armed))
-            if since >= patience:
-                return TERMINATED_STALLED, None, progress, 0, {"converged": 0.0}
-            stall = {"stall": [best, since, float(armed)]}
-        else:
-            stall = {}
         mu, var = self._get(context, "memory").reshape(2, self._h, 6)
         noise = (mu, var) if var.any() else None
         result = self._mpc.solve(
@@ -488,7 +473,6 @@ class MpcController(StepController):
                     [np.ravel(x) for x in result.noise or (np.zeros(12 * self._h),)]
                 ),
                 "converged": float(result.converged),
-                **stall,
             },
         )
 

@@ -332,30 +332,6 @@ def small_mpc(dynamics, states) -> Mpc:
     )
 
 
-def test_the_stall_count_starts_near_the_demos_end_and_reads_its_reward():
-    """Mpc.stall: no count before the progress reaches the demo's
-    second-to-last state; then a state that stays put gains nothing and the
-    count rises, one that reaches a later demo state restarts it."""
-    states = pulled_demo(n=12)
-    mpc = small_mpc(Linear(), states)
-    for _ in range(3):
-        _, since, armed = mpc.stall(states[3], 0.0, 0, False)
-        assert (since, armed) == (0, False)
-    best, since, armed = mpc.stall(states[8], 0.0, 0, False)
-    assert (since, armed) == (0, False)
-    best, since, armed = mpc.stall(states[9], best, since, armed)
-    assert (since, armed) == (0, False)
-    best, since, armed = mpc.stall(states[10], best, since, armed)
-    assert (since, armed) == (0, True)
-    for k in range(1, 4):
-        best, since, armed = mpc.stall(states[10], best, since, armed)
-        assert since == k
-    later, since, _ = mpc.stall(states[11], best, since, armed)
-    assert since == 0 and later >= best + mpc.config.stall_gain
-    with pytest.raises(ValueError, match="mpc.stall_steps"):
-        MpcConfig(stall_steps=-1)
-
-
 def test_an_invalid_prior_action_is_repaired_unless_switched_off():
     states = pulled_demo(n=8)
     mpc = linear_goal_mpc(

@@ -15,7 +15,6 @@ from fabric_imitation.scenarios.loader import LoadScenario
 from fabric_imitation.systems.imitation import (
     RUNNING,
     TERMINATED_CLASSIFIER,
-    TERMINATED_STALLED,
     MpcController,
 )
 from fabric_imitation.systems.station_parts import ReleaseLatch
@@ -170,15 +169,11 @@ def test_rule_2_for_estimates_allows_for_hidden_hanging_corners(box):
 class FixedMpc:
     """Returns one object-frame action; records the frame pose it was given."""
 
-    def __init__(self, action_O, done=False, ctx=None, rewards=(), stall_steps=0):
+    def __init__(self, action_O, done=False, ctx=None):
         self.action = torch.as_tensor(action_O, dtype=torch.float32)
         self.frames = []
         self.done = done
-        self.config = types.SimpleNamespace(
-            num_samples=1, horizon=2, stall_steps=stall_steps, stall_gain=1.0
-        )
-        # R_E of the state at each step (stall_steps > 0)
-        self.rewards = list(rewards)
+        self.config = types.SimpleNamespace(num_samples=1, horizon=2)
         self.noises = []
         self.ctx = ctx or SafetyContext(
             edge_length=0.3,
@@ -188,14 +183,6 @@ class FixedMpc:
 
     def finished(self, S, steps):
         return self.done
-
-    def stall(self, S, best, since, armed):
-        # Mpc.stall's count with the scripted rewards, one per step; the
-        # count starts at the first step.
-        r = self.rewards.pop(0)
-        if not armed or r >= best + self.config.stall_gain:
-            return r, 0, True
-        return best, since + 1, True
 
     def solve(
         self,
@@ -259,27 +246,6 @@ def test_mpc_controller_carries_the_noise_distribution_to_the_next_step():
         np.testing.assert_array_equal(mu, np.full((2, 6), step))
         np.testing.assert_array_equal(var, np.full((2, 6), 0.5))
     assert len(mpc.noises) == 3
-
-
-def test_mpc_controller_ends_a_stalled_episode():
-    """With stall_steps 3 the episode ends ("stalled") at the third step in a
-    row whose reward has not risen by stall_gain (1) above the best so far;
-    a gain of 1 restarts the count, smaller ones do not."""
-    rewards = [-5.0, -3.0, -2.5, -2.2, -2.1, -1.0, -1.0, -1.0]
-    mpc = FixedMpc(np.zeros(6), rewards=rewards, stall_steps=3)
-    dut, context = _controller(mpc, 0.0)
-    simulator = Simulator(dut, context)
-    ended = None
-    for k in range(1, len(rewards)):
-        simulator.AdvanceTo((k + 0.5) * DT)
-        if dut.GetOutputPort("termination").Eval(context)[0] != RUNNING:
-            ended = k
-            break
-    # -3.0 at step 1 is the best; -2.5, -2.2 and -2.1 gain less than 1.
-    assert ended == 4
-    assert dut.GetOutputPort("termination").Eval(context)[0] == TERMINATED_STALLED
-    assert dut.GetOutputPort("steps").Eval(context)[0] == 4
-    assert dut.GetOutputPort("release").Eval(context)[0] == 1.0
 
 
 def test_mpc_controller_stops_releases_and_lifts_the_grippers_clear():
