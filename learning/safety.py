@@ -65,14 +65,6 @@ class SafetyConfig:
     # seeing the towel from above, puts the far corner up by the grippers,
     # where a move down and back looks safe but points far off the true
     # side.
-    # The controller's view only: judge rule 2 also with each far corner
-    # moved along the grasped edge to its grasped corner's place there, the
-    # side square to the edge, as the sides of a rectangular cloth held by
-    # two corners of one edge hang or drape (SafetyContext.far_corners_square);
-    # with hidden_corners_hang, that corner dropped as above too. Seen from
-    # above, a side hanging behind a bar or a plate is a thin line, along
-    # which f_R can put its far corner anywhere.
-    hidden_corners_square: bool = False
 
     def __post_init__(self):
         if not 0 < self.tau_c < self.tau_f:
@@ -161,10 +153,6 @@ class SafetyContext:
     # long, with the side hanging straight below it, so an action passes
     # only if it passes wherever the corner may hang.
     far_corners_may_hang: bool = False
-    # ... and each far corner may lie where its side, square to the grasped
-    # edge, puts it: moved along the edge (horizontally) to its grasped
-    # corner's place (SafetyConfig.hidden_corners_square).
-    far_corners_square: bool = False
     # Rest length [m] of the sides s1-s3 and s2-s4 (None: edge_length).
     side_length: float | None = None
     # Spheres (n, 4) [x, y, z, radius] covering a gripper's hand, around the
@@ -227,14 +215,6 @@ def rule_violations(
             free = g[..., 2] - _dropped(g, 1.0, ctx)[..., 2] >= side
             if free.any():  # rarely: the rollouts' grippers are low
                 out["direction"] = out["direction"] | (free & bad_direction(a, up))
-    if ctx.far_corners_square:
-        fractions = (0.0, 0.5, 1.0) if ctx.far_corners_may_hang else (0.0,)
-        for a, g, f in ((a_l, s1, s3), (a_r, s2, s4)):
-            square = _square_to_edge(f, g, s2 - s1)
-            floor = _surface_below(square, ctx)
-            for fraction in fractions:
-                far = _dropped(square, fraction, ctx, floor)
-                out["direction"] = out["direction"] | bad_direction(a, g - far)
     grippers = torch.stack([s1n, s2n], -2)
     out["workspace"] = _outside_workspace(S, A, S_next, grippers, ctx)
     if ctx.object_size is not None:
@@ -345,20 +325,6 @@ def _dropped(
         floor = _surface_below(p, ctx)
     z = p[..., 2] - fraction * (p[..., 2] - floor).clamp_min(0.0)
     return torch.cat([p[..., :2], z[..., None]], -1)
-
-
-def _square_to_edge(
-    far: torch.Tensor, grasped: torch.Tensor, edge: torch.Tensor
-) -> torch.Tensor:
-    """Far corners (..., 3) moved horizontally along the grasped edge's
-    direction `edge` (..., 3; its horizontal part) until they lie level with
-    their grasped corners along it: the side from `grasped` square to the
-    edge, seen from above."""
-    u = edge[..., :2]
-    u = u / u.norm(dim=-1, keepdim=True).clamp_min(1e-9)
-    along = ((grasped - far)[..., :2] * u).sum(-1, keepdim=True)
-    xy = far[..., :2] + along * u
-    return torch.cat([xy, far[..., 2:]], -1)
 
 
 def direction_angles(S: torch.Tensor, A: torch.Tensor, min_move: float) -> torch.Tensor:

@@ -127,7 +127,6 @@ def TaskSafetyContext(scenario: Scenario, *, estimated: bool = False) -> SafetyC
             else None
         ),
         far_corners_may_hang=estimated and scenario.safety.hidden_corners_hang,
-        far_corners_square=estimated and scenario.safety.hidden_corners_square,
         side_length=scenario.cloth.size[1],
         hand_spheres=(
             HandSpheres(scenario)

@@ -332,39 +332,3 @@ def test_rule_2_threshold_from_the_demo_stops_at_the_ceiling():
     with pytest.raises(ValueError, match="tau_d_max_deg"):
         SafetyConfig(tau_d_max_deg=0.0)
 
-
-def test_a_far_corner_misread_along_the_edge_is_judged_square_to_it():
-    import dataclasses as dc
-
-    # The right side hangs from s2 at 20 cm; f_R put its far corner s4 20 cm
-    # along the edge towards the middle. The right gripper moves straight
-    # towards where the corner truly is (0.15, 0.10, 0.05): a move the true
-    # side refuses (180 degrees), the misread one allows (132 degrees).
-    S = flat_state()
-    idx = corner_indices(8)
-    S[idx["s1"], 2] = S[idx["s2"], 2] = 0.20
-    S[idx["s4"]] = [-0.05, 0.10, 0.05]
-    toward = np.array([0.0, 0.10, -0.15])
-    A = np.concatenate([np.zeros(3), 0.02 * toward / np.linalg.norm(toward)])
-    cfg = SafetyConfig(tau_d_deg=155.0)
-    assert "direction" not in violated(A, S=S, config=cfg)
-    square = dc.replace(CTX, far_corners_square=True)
-    assert "direction" in violated(A, S=S, ctx=square, config=cfg)
-    # With the corner where the estimate said, square to the edge already,
-    # the hypothesis changes nothing.
-    S[idx["s4"]] = [0.15, 0.10, 0.05]
-    assert "direction" in violated(A, S=S, config=cfg)
-
-
-def test_square_far_corners_leave_a_square_cloth_as_it_is():
-    import dataclasses as dc
-
-    import torch
-
-    rng = np.random.default_rng(0)
-    A = torch.as_tensor(rng.uniform(-0.03, 0.03, (500, 6)))
-    S = torch.as_tensor(flat_state())
-    square = dc.replace(CTX, far_corners_square=True)
-    plain = rule_violations(S, A, CFG, CTX)["direction"]
-    assert plain.any() and not plain.all()
-    assert torch.equal(rule_violations(S, A, CFG, square)["direction"], plain)
