@@ -331,4 +331,3 @@ def test_rule_2_threshold_from_the_demo_stops_at_the_ceiling():
     assert roomy.tau_d_deg == pytest.approx(165.0, abs=1e-6)
     with pytest.raises(ValueError, match="tau_d_max_deg"):
         SafetyConfig(tau_d_max_deg=0.0)
-
