@@ -17,6 +17,10 @@ from fabric_imitation.tools.cli import main
             "--scenario-text: YAML syntax error at line 1, column",
         ),
         (["imitate", "--scenario-text", "- 1\n- 2"], "must be a YAML mapping"),
+        (
+            ["watch", "/no/runs.jsonl", "--scenario", "box", "--trial", "0"],
+            "no evaluate file /no/runs.jsonl",
+        ),
         (["evaluate", "--trials", "0", "--out", "x.jsonl"], "--trials must be at"),
         (["evaluate", "--workers", "0", "--out", "x.jsonl"], "--workers must be at"),
         (

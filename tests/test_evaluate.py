@@ -291,3 +291,77 @@ def test_the_no_mpc_ablation_applies_f_i_whatever_the_policys_prior():
     assert changes["prior"] == "inverse" and not changes["use_mpc"]
     _, ours = METHODS["ours"]
     assert "prior" not in ours
+
+
+def test_watch_runs_a_trial_again_as_evaluate_ran_it(tmp_path, monkeypatch):
+    """`watch` gives the controller the trial line's object pose, cloth start
+    and sampling seed, passes the recording and video on, and says whether
+    the run took the row's course."""
+    import fabric_imitation.tools.episode as episode
+    import fabric_imitation.tools.evaluate as evaluate
+
+    calls = []
+    steps = {"value": 20}
+
+    def imitate(**kwargs):
+        calls.append(kwargs)
+        row = _row(0, True, 0, steps["value"], 0.9)
+        row["chamfer_over_steps"] = [0.2, 0.1]
+        return {k: v for k, v in row.items() if k not in ("trial", "trial_seconds")}
+
+    monkeypatch.setattr(episode, "Imitate", imitate)
+    monkeypatch.setattr(evaluate, "_prepare", lambda job: object())
+    out = tmp_path / "eval.jsonl"
+    evaluate.Evaluate(
+        scenario_names=["box"],
+        methods=["ours"],
+        trials=2,
+        out=out,
+        progress=False,
+        worker_trials=0,
+        sampling_seed=3,
+    )
+    ran = calls[1] if calls[1]["seed"] == 3001 else calls[0]
+    record, video = tmp_path / "t1.html", tmp_path / "t1.mp4"
+    watched = evaluate.WatchTrial(
+        runs=out, scenario="box", trial=1, record=record, video=video, progress=False
+    )
+    again = calls[-1]
+    assert again["seed"] == 3001
+    assert list(again["scenario"].object.pose) == list(ran["scenario"].object.pose)
+    assert list(again["scenario"].cloth.pose) == list(ran["scenario"].cloth.pose)
+    assert again["record"] == record and again["video"] == video
+    assert watched["same_course"] and watched["differs"] == []
+    assert watched["row"] == {"steps": 20, "termination": "classifier", "success": True}
+    steps["value"] = 21  # another course
+    assert not evaluate.WatchTrial(runs=out, scenario="box", trial=1, progress=False)[
+        "same_course"
+    ]
+
+
+def test_watch_refuses_what_it_cannot_run(tmp_path):
+    import json
+
+    from fabric_imitation.learning.errors import InputError
+    from fabric_imitation.tools.evaluate import WatchTrial
+
+    out = tmp_path / "eval.jsonl"
+    rows = [
+        {"scenario": "box", "method": m, "trial": t, "pose_seed": 0}
+        for m in ("ours", "scripted")
+        for t in (0, 1)
+    ] + [{"scenario": "cylinder", "method": "ours", "trial": 0, "demo": "/no/demo"}]
+    out.write_text("".join(json.dumps(r) + "\n" for r in rows) + '{"scen')
+    for kwargs, message in [
+        (dict(runs=tmp_path / "none.jsonl", scenario="box", trial=0), "no evaluate"),
+        (
+            dict(runs=out, scenario="hang", trial=0),
+            "no 'hang' trials; it has box, cylinder",
+        ),
+        (dict(runs=out, scenario="cylinder", trial=0), "give its place with --demo"),
+        (dict(runs=out, scenario="box", trial=5), "its trials: 0-1"),
+        (dict(runs=out, scenario="box", trial=0), "pick one with --method"),
+        (dict(runs=out, scenario="box", trial=0, method="scripted"), "scripted"),
+    ]:
+        with pytest.raises(InputError, match=message):
+            WatchTrial(progress=False, **kwargs)

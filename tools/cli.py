@@ -56,6 +56,9 @@ DESCRIPTIONS = {
     "real drivers (--hardware): the main job.",
     "evaluate": "Run imitation trials with the object moved and turned, per "
     "scenario and method; resumable; writes a summary and a plot.",
+    "watch": "Run one trial of an evaluate file again as evaluate ran it (its "
+    "poses, demo, policy, sampling seed), with a meshcat recording and the "
+    "camera's video, and say whether it took the same course.",
     "bench sim": "Real-time factors of the cloth engines per phase.",
     "bench collect": "Collection rate with 1 and 2 workers.",
     "bench train": "Training throughput.",
@@ -628,6 +631,44 @@ def _evaluate(args) -> dict:
         executor=args.executor,
         sampling_seed=args.sampling_seed,
         on_violation=args.on_violation,
+    )
+
+
+def _add_watch(p):
+    p.add_argument("runs", type=Path, help="an evaluate file (JSON lines)")
+    p.add_argument(
+        "--scenario", required=True, help="the trial's scenario, as in the file"
+    )
+    p.add_argument("--trial", type=int, required=True, help="the trial's number")
+    p.add_argument(
+        "--method", default=None, help="where the file holds several methods"
+    )
+    p.add_argument(
+        "--demo",
+        type=Path,
+        default=None,
+        help="demo directory in place of the one the trial line names",
+    )
+    p.add_argument(
+        "--record", type=Path, default=None, help="write a meshcat recording (HTML)"
+    )
+    p.add_argument(
+        "--video", type=Path, default=None, help="write the camera's view (mp4)"
+    )
+
+
+@command("watch")(_add_watch)
+def _watch(args) -> dict:
+    from fabric_imitation.tools.evaluate import WatchTrial
+
+    return WatchTrial(
+        runs=args.runs,
+        scenario=args.scenario,
+        trial=args.trial,
+        method=args.method,
+        demo=args.demo,
+        record=args.record,
+        video=args.video,
     )
 
 

@@ -233,7 +233,15 @@ def _JobPolicy(job: dict):
     )
 
 
-def _run_trial(job: dict) -> dict:
+def _run_trial(
+    job: dict,
+    *,
+    record: Path | None = None,
+    video: Path | None = None,
+    progress: bool = False,
+) -> dict:
+    """One trial of `job` (an evaluate job or a trial line of one); `record`
+    and `video` (WatchTrial) write its meshcat recording and camera video."""
     import torch
 
     torch.set_num_threads(1)
@@ -258,7 +266,9 @@ def _run_trial(job: dict) -> dict:
                 prepared=_PREPARED[job["scenario"]],
                 mpc_config=dc.replace(scenario.mpc, **changes),
                 controller=controller,
-                progress=False,
+                progress=progress,
+                record=record,
+                video=video,
                 seed=job["trial"] + SAMPLING_SEED_STRIDE * job.get("sampling_seed", 0),
                 on_violation=job.get("on_violation", "stop"),
             )
@@ -734,6 +744,146 @@ def _PrepareDemos(jobs: list[dict]) -> tuple[dict, dict]:
             prepared[job["scenario"]] = _prepare(job)
             seconds[job["scenario"]] = round(time.perf_counter() - t0, 1)
     return prepared, seconds
+
+
+# What a trial line holds of its job: enough to run the trial again.
+_JOB_FIELDS = (
+    "scenario",
+    "method",
+    "trial",
+    "pose",
+    "cloth_start",
+    "pose_seed",
+    "on_violation",
+    "demo",
+    "priors",
+    "scenario_text",
+    "policy",
+    "policy_text",
+    "protocol",
+    "sampling_seed",
+    "baselines",
+)
+
+
+def WatchTrial(
+    *,
+    runs: Path,
+    scenario: str,
+    trial: int,
+    method: str | None = None,
+    demo: Path | None = None,
+    record: Path | None = None,
+    video: Path | None = None,
+    progress: bool = True,
+) -> dict:
+    """Runs trial `trial` of `scenario` in the evaluate file `runs` again as
+    evaluate ran it (its object pose, cloth start, demo, priors, policy,
+    sampling seed and stopping rule), writing its meshcat recording
+    (`record`, HTML) and the camera's video (`video`, mp4) to watch it.
+    `method` picks one where the file holds several; `demo`, a demo
+    directory in place of the one the line names (recorded again elsewhere).
+
+    Returns the new run's summary with `row` (the file's steps, termination
+    and success), `same_course` (whether the run repeats the row's Chamfer
+    curve, steps and termination) and `differs` (what differs from the
+    row's run: code, priors, demo, ..., machine; on another machine or code
+    the same trial can take another course)."""
+    row = _TrialRow(Path(runs), scenario, trial, method)
+    if row["method"] == "scripted":
+        raise InputError(
+            "watch runs a controller's trial; the scripted demo is watched "
+            "with `fabric-imitate simulate --record` or `demo record`"
+        )
+    if row["method"] not in METHODS:
+        raise InputError(
+            f"trial line's method {row['method']!r} is unknown to this code; "
+            f"known: {', '.join(METHODS)}"
+        )
+    job = {k: row.get(k) for k in _JOB_FIELDS}
+    if demo is not None:
+        job["demo"] = str(demo)
+    for key in ("demo", "priors", "policy"):
+        if job[key] and not Path(job[key]).exists():
+            raise InputError(
+                f"the trial's {key} {job[key]} does not exist"
+                + (" (give its place with --demo)" if key == "demo" else "")
+            )
+    from fabric_imitation.scenarios.policy import LoadPolicy
+
+    chosen = LoadPolicy(
+        priors_dir=job["priors"],
+        filename=job["policy"],
+        policy_text=job["policy_text"] or "",
+    )
+    now = TrialFingerprints(
+        scenario,
+        scenario_text=job["scenario_text"] or "",
+        demo=job["demo"],
+        priors=job["priors"],
+        policy=chosen,
+    )
+    differs = [k for k, v in now.items() if row.get("fingerprint", {}).get(k) != v]
+    if (row.get("machine") or {}).get("id") != Machine()["id"]:
+        differs.append("machine")
+    prepared, _ = _PrepareDemos([job])
+    _set_prepared(prepared)
+    new = _run_trial(job, record=record, video=video, progress=progress)
+    new.pop("worker", None)
+    keys = ("steps", "termination", "success")
+    return {
+        **new,
+        "runs": str(runs),
+        "row": {k: row.get(k) for k in keys},
+        "same_course": all(new.get(k) == row.get(k) for k in keys)
+        and new.get("chamfer_over_steps") == row.get("chamfer_over_steps"),
+        "differs": differs,
+    }
+
+
+def _TrialRow(runs: Path, scenario: str, trial: int, method: str | None) -> dict:
+    """The trial line of `runs` for (scenario, trial[, method])."""
+    if not runs.is_file():
+        raise InputError(f"no evaluate file {runs}")
+    rows = []
+    for line in runs.read_text().splitlines():
+        try:
+            rows.append(json.loads(line))
+        except json.JSONDecodeError:
+            continue  # a line cut by a kill: that trial has no row
+    rows = [r for r in rows if isinstance(r, dict) and "scenario" in r and "trial" in r]
+    if not rows:
+        raise InputError(f"{runs} holds no trial lines of `fabric-imitate evaluate`")
+    names = sorted({r["scenario"] for r in rows})
+    if scenario not in names:
+        raise InputError(
+            f"{runs} has no {scenario!r} trials; it has {', '.join(names)}"
+        )
+    found = [r for r in rows if r["scenario"] == scenario and r["trial"] == trial]
+    if method is not None:
+        found = [r for r in found if r.get("method") == method]
+    if not found:
+        trials = sorted({r["trial"] for r in rows if r["scenario"] == scenario})
+        raise InputError(
+            f"{runs} has no {scenario!r} trial {trial}"
+            + (f" of method {method!r}" if method else "")
+            + f"; its trials: {trials[0]}-{trials[-1]}"
+        )
+    methods = sorted({r.get("method") for r in found})
+    if len(methods) > 1:
+        raise InputError(
+            f"{scenario!r} trial {trial} ran with methods {', '.join(methods)} in "
+            f"{runs}: pick one with --method"
+        )
+    if len(found) > 1:
+        runs_of = sorted(
+            {(r.get("pose_seed"), r.get("sampling_seed", 0)) for r in found}, key=str
+        )
+        raise InputError(
+            f"{runs} holds {len(found)} runs of {scenario!r} trial {trial} "
+            f"(pose seed, sampling seed: {runs_of}); watch reads a file of one run"
+        )
+    return found[0]
 
 
 class _TrialStore:
