@@ -240,24 +240,35 @@ def test_occlusion_hides_the_asked_fraction_of_the_fabric():
             assert not np.any(hidden & (mask == 0))
 
 
+def _fake_episodes(monkeypatch, steps: int = 20) -> list[dict]:
+    """Replaces each episode with a fixed row of `steps` steps and learning
+    from the demo with nothing; returns the list that each episode's keyword
+    arguments are appended to."""
+    import fabric_imitation.tools.episode as episode
+    import fabric_imitation.tools.evaluate as evaluate
+
+    calls: list[dict] = []
+
+    def imitate(**kwargs):
+        calls.append(kwargs)
+        row = _row(0, True, 0, steps, 0.9)
+        row["chamfer_over_steps"] = [0.2, 0.1]
+        return {k: v for k, v in row.items() if k not in ("trial", "trial_seconds")}
+
+    monkeypatch.setattr(episode, "Imitate", imitate)
+    monkeypatch.setattr(evaluate, "_prepare", lambda job: object())
+    return calls
+
+
 def test_a_sampling_seed_is_another_run_of_the_same_poses(tmp_path, monkeypatch):
     """--sampling-seed K reseeds every trial's controller (trial i: i + 1000
     K) at the same poses; rows of one sampling seed are never resumed as
     another's."""
     import json
 
-    import fabric_imitation.tools.episode as episode
     import fabric_imitation.tools.evaluate as evaluate
 
-    seeds = []
-
-    def imitate(**kwargs):
-        seeds.append(kwargs["seed"])
-        row = _row(0, True, 0, 20, 0.9)
-        return {k: v for k, v in row.items() if k not in ("trial", "trial_seconds")}
-
-    monkeypatch.setattr(episode, "Imitate", imitate)
-    monkeypatch.setattr(evaluate, "_prepare", lambda job: object())
+    calls = _fake_episodes(monkeypatch)
     out = tmp_path / "eval.jsonl"
     common = dict(
         scenario_names=["box"],
@@ -269,10 +280,10 @@ def test_a_sampling_seed_is_another_run_of_the_same_poses(tmp_path, monkeypatch)
     )
     first = evaluate.Evaluate(**common)
     again = evaluate.Evaluate(**common, sampling_seed=3)
-    assert seeds == [0, 1, 3000, 3001]
+    assert [c["seed"] for c in calls] == [0, 1, 3000, 3001]
     assert first["poses"] == again["poses"] and again["sampling_seed"] == 3
     evaluate.Evaluate(**common, sampling_seed=3)  # resumed: nothing to run
-    assert len(seeds) == 4
+    assert len(calls) == 4
     rows = [json.loads(line) for line in out.read_text().splitlines()]
     assert sorted((r["sampling_seed"], r["trial"]) for r in rows) == [
         (0, 0),
@@ -297,20 +308,9 @@ def test_watch_runs_a_trial_again_as_evaluate_ran_it(tmp_path, monkeypatch):
     """`watch` gives the controller the trial line's object pose, cloth start
     and sampling seed, passes the recording and video on, and says whether
     the run took the row's course."""
-    import fabric_imitation.tools.episode as episode
     import fabric_imitation.tools.evaluate as evaluate
 
-    calls = []
-    steps = {"value": 20}
-
-    def imitate(**kwargs):
-        calls.append(kwargs)
-        row = _row(0, True, 0, steps["value"], 0.9)
-        row["chamfer_over_steps"] = [0.2, 0.1]
-        return {k: v for k, v in row.items() if k not in ("trial", "trial_seconds")}
-
-    monkeypatch.setattr(episode, "Imitate", imitate)
-    monkeypatch.setattr(evaluate, "_prepare", lambda job: object())
+    calls = _fake_episodes(monkeypatch)
     out = tmp_path / "eval.jsonl"
     evaluate.Evaluate(
         scenario_names=["box"],
@@ -333,7 +333,7 @@ def test_watch_runs_a_trial_again_as_evaluate_ran_it(tmp_path, monkeypatch):
     assert again["record"] == record and again["video"] == video
     assert watched["same_course"] and watched["differs"] == []
     assert watched["row"] == {"steps": 20, "termination": "classifier", "success": True}
-    steps["value"] = 21  # another course
+    _fake_episodes(monkeypatch, steps=21)  # another course
     assert not evaluate.WatchTrial(runs=out, scenario="box", trial=1, progress=False)[
         "same_course"
     ]
