@@ -365,3 +365,34 @@ def test_watch_refuses_what_it_cannot_run(tmp_path):
     ]:
         with pytest.raises(InputError, match=message):
             WatchTrial(progress=False, **kwargs)
+
+
+@pytest.mark.slow
+def test_a_watched_trial_takes_the_course_evaluate_recorded(tmp_path):
+    """`watch` runs a real trial again step for step on the machine that ran
+    it: the same Chamfer curve, steps and termination, nothing differing."""
+    from conftest import SmallCloth
+    from fabric_imitation.tools.evaluate import Evaluate, WatchTrial
+
+    out = tmp_path / "eval.jsonl"
+    Evaluate(
+        scenario_names=["box"],
+        methods=["ours"],
+        trials=2,
+        seed=3,
+        sampling_seed=1,
+        scenario_text=SmallCloth("vbd"),
+        out=out,
+        progress=False,
+        worker_trials=0,
+    )
+    watched = WatchTrial(
+        runs=out,
+        scenario="box",
+        trial=1,
+        video=tmp_path / "t1.mp4",
+        progress=False,
+    )
+    assert watched["same_course"], (watched["row"], watched["steps"])
+    assert watched["differs"] == []
+    assert (tmp_path / "t1.mp4").stat().st_size > 0
