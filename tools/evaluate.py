@@ -809,19 +809,12 @@ def WatchTrial(
                 f"the trial's {key} {job[key]} does not exist"
                 + (" (give its place with --demo)" if key == "demo" else "")
             )
-    from fabric_imitation.scenarios.policy import LoadPolicy
-
-    chosen = LoadPolicy(
-        priors_dir=job["priors"],
-        filename=job["policy"],
-        policy_text=job["policy_text"] or "",
-    )
     now = TrialFingerprints(
         scenario,
         scenario_text=job["scenario_text"] or "",
         demo=job["demo"],
         priors=job["priors"],
-        policy=chosen,
+        policy=_JobPolicy(job),
     )
     differs = [k for k, v in now.items() if row.get("fingerprint", {}).get(k) != v]
     if (row.get("machine") or {}).get("id") != Machine()["id"]:
