@@ -395,17 +395,36 @@ def _collect(args) -> dict:
 
 
 def _add_train(p):
-    p.add_argument("--data", type=Path, required=True, help="prior dataset (HDF5)")
+    p.add_argument(
+        "--data",
+        type=Path,
+        required=True,
+        action="append",
+        help="prior dataset (HDF5); with --forward-only it may be given "
+        "several times, and f_D learns them together",
+    )
     p.add_argument("--out", type=Path, required=True, help="checkpoint directory")
     p.add_argument("--epochs", type=int, default=20, help="epochs of f_D and f_I")
     p.add_argument("--keypoint-epochs", type=int, default=10, help="epochs of f_R")
     p.add_argument("--seed", type=int, default=0)
+    p.add_argument(
+        "--forward-only",
+        type=Path,
+        default=None,
+        metavar="PRIORS",
+        help="train f_D only, from a fresh start, on the --data sets; keep "
+        "these priors' f_R, f_I, normalisers and prior states",
+    )
 
 
 @command("train")(_add_train)
 def _train(args) -> dict:
     from fabric_imitation.learning.policy import POLICY_FILE
-    from fabric_imitation.learning.train import TrainConfig, train_priors
+    from fabric_imitation.learning.train import (
+        TrainConfig,
+        train_forward,
+        train_priors,
+    )
 
     config = TrainConfig(
         epochs=args.epochs, seed=args.seed, keypoint_epochs=args.keypoint_epochs
@@ -416,11 +435,22 @@ def _train(args) -> dict:
         WritePolicy,
     )
 
-    # The new priors get the policy of the priors they replace (or the
-    # shipped one), for their own checksum.
-    own = Path(args.out) / POLICY_FILE
-    policy = LoadPolicy(filename=own if own.is_file() else None, check_priors=False)
-    result = train_priors(data=args.data, out=args.out, config=config)
+    if args.forward_only is None and len(args.data) > 1:
+        raise InputError("several --data need --forward-only (f_R learns one dataset)")
+    if args.forward_only is not None:
+        # The new priors get the policy of the priors they start from.
+        base = Path(args.forward_only)
+        policy = LoadPolicy(
+            filename=base / POLICY_FILE if (base / POLICY_FILE).is_file() else None,
+            check_priors=False,
+        )
+        result = train_forward(data=args.data, base=base, out=args.out, config=config)
+    else:
+        # The new priors get the policy of the priors they replace (or the
+        # shipped one), for their own checksum.
+        own = Path(args.out) / POLICY_FILE
+        policy = LoadPolicy(filename=own if own.is_file() else None, check_priors=False)
+        result = train_priors(data=args.data[0], out=args.out, config=config)
     policy = dc.replace(policy, priors_sha256=PriorsSha256(args.out))
     return {**result, "policy": str(WritePolicy(policy, args.out))}
 

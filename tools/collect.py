@@ -1,5 +1,7 @@
-"""`fabric-imitate collect`: random safe bimanual motions in the contact-free
-prior scene, recorded as transitions (paper Sec. IV-B).
+"""`fabric-imitate collect`: random safe bimanual motions recorded as
+transitions (paper Sec. IV-B): in the contact-free prior scene, or in a task's
+scene, where the cloth also meets the object (data with contact for f_D;
+`train --forward-only`).
 
 Episodes are the unit of work: episode e draws from RNG(seed, e) only, so the
 data are the same for any worker count or executor, and a resumed run
@@ -33,12 +35,17 @@ from fabric_imitation.learning.dataset import (
 )
 from fabric_imitation.learning.errors import InputError
 from fabric_imitation.learning.safety import valid_actions
-from fabric_imitation.learning.state import NUM_KEYPOINTS, SIDES
+from fabric_imitation.learning.state import (
+    NUM_KEYPOINTS,
+    SIDES,
+    world_to_object,
+    yaw_matrix,
+)
 from fabric_imitation.scenarios.loader import DumpScenario, LoadScenario
-from fabric_imitation.scenarios.poses import GraspCorners
+from fabric_imitation.scenarios.poses import GraspCorners, ObjectPlanarPose
 from fabric_imitation.scenarios.schema import Scenario
 from fabric_imitation.systems.targets import GripperTargetIntegrator
-from fabric_imitation.tasks.referee import TaskSafetyContext
+from fabric_imitation.tasks.referee import HandSpheres, TaskSafetyContext
 from fabric_imitation.tools.executors import EXECUTORS, RunJobs
 from pydrake.systems.analysis import Simulator
 from pydrake.systems.framework import DiagramBuilder
@@ -66,11 +73,6 @@ class EpisodeCollector:
     """One station, reused for every episode by resetting its context."""
 
     def __init__(self, scenario: Scenario):
-        if scenario.object.kind != "none":
-            raise InputError(
-                f"priors are collected in a contact-free scene; this "
-                f"scenario has a {scenario.object.kind}"
-            )
         self.scenario = scenario
         builder = DiagramBuilder()
         self.station = MakeClothStation(scenario)
@@ -104,6 +106,17 @@ class EpisodeCollector:
         self.station_context = station.GetMyContextFromRoot(self.context)
         self.action_port = self.diagram.GetInputPort("action")
         self.safety_ctx = TaskSafetyContext(scenario)
+        # In a scene with an object the rules judge states in the object's
+        # frame (rule 4 on the grasped points and on the hands' spheres, so
+        # that the hands do not strike the object); the data stay in the
+        # world frame, as f_D and f_I read each state in its own canonical
+        # frame.
+        self.object_pose = None
+        if scenario.object.kind != "none":
+            self.object_pose = ObjectPlanarPose(scenario)
+            self.safety_ctx = dc.replace(
+                self.safety_ctx, hand_spheres=HandSpheres(scenario)
+            )
 
     def _observe(self):
         def port(name):
@@ -125,9 +138,14 @@ class EpisodeCollector:
         bound = self.scenario.safety.max_step
         noise = rng.uniform(-1, 1, size=(cfg.candidates, 6)) * cfg.noise * bound
         A = np.clip(np.tile(drift, 2) + noise, -bound, bound)
+        S_frame, A_frame = S, A
+        if self.object_pose is not None:
+            S_frame = world_to_object(S, self.object_pose)
+            R = yaw_matrix(np.asarray(self.object_pose[2]))
+            A_frame = (A.reshape(-1, 2, 3) @ R).reshape(A.shape)
         ok = valid_actions(
-            torch.as_tensor(S, dtype=torch.float64)[None],
-            torch.as_tensor(A),
+            torch.as_tensor(S_frame, dtype=torch.float64)[None],
+            torch.as_tensor(A_frame),
             self.scenario.safety,
             self.safety_ctx,
         ).numpy()
