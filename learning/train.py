@@ -295,16 +295,7 @@ def train_priors(
     v_s, v_n, v_a = _dynamics_tensors(ds, va)
     enc = norms["state"].encode
     curves = {}
-    curves["f_D"] = _fit_mlp(
-        priors.f_D,
-        torch.cat([enc(x_s), norms["action"].encode(a)], -1),
-        norms["delta"].encode(x_n - x_s),
-        torch.cat([enc(v_s), norms["action"].encode(v_a)], -1),
-        norms["delta"].encode(v_n - v_s),
-        cfg,
-        "f_D",
-        log,
-    )
+    curves["f_D"] = _fit_forward(priors, (x_s, x_n, a), (v_s, v_n, v_a), cfg, log)
     curves["f_I"] = _fit_mlp(
         priors.f_I,
         torch.cat([enc(x_s), enc(x_n)], -1),
@@ -343,6 +334,24 @@ def train_priors(
     (out / "metrics.json").write_text(json.dumps(metrics, indent=1))
     _plot(curves, out / "curves.png")
     return {"out": str(out), "dataset_fingerprint": ds.fingerprint, **metrics}
+
+
+def _fit_forward(priors: Priors, train, val, cfg: TrainConfig, log) -> list:
+    """Fits f_D on (states, next states, actions) tensors, in the priors'
+    normalisation: the encoded state and action in, the encoded change out."""
+    norms = priors.norms
+    enc, enc_a, enc_d = (norms[k].encode for k in ("state", "action", "delta"))
+    (x_s, x_n, a), (v_s, v_n, v_a) = train, val
+    return _fit_mlp(
+        priors.f_D,
+        torch.cat([enc(x_s), enc_a(a)], -1),
+        enc_d(x_n - x_s),
+        torch.cat([enc(v_s), enc_a(v_a)], -1),
+        enc_d(v_n - v_s),
+        cfg,
+        "f_D",
+        log,
+    )
 
 
 def _mean_error_mm(priors: Priors, S, A, S_next) -> float:
@@ -404,18 +413,7 @@ def train_forward(
             parts[name].append(_dynamics_tensors(ds, idx))
     x_s, x_n, a = (torch.cat(t) for t in zip(*parts["tr"], strict=True))
     v_s, v_n, v_a = (torch.cat(t) for t in zip(*parts["va"], strict=True))
-    norms = priors.norms
-    enc = norms["state"].encode
-    curve = _fit_mlp(
-        priors.f_D,
-        torch.cat([enc(x_s), norms["action"].encode(a)], -1),
-        norms["delta"].encode(x_n - x_s),
-        torch.cat([enc(v_s), norms["action"].encode(v_a)], -1),
-        norms["delta"].encode(v_n - v_s),
-        cfg,
-        "f_D",
-        log,
-    )
+    curve = _fit_forward(priors, (x_s, x_n, a), (v_s, v_n, v_a), cfg, log)
     priors.f_D.eval()
     held_out = []
     for p, ds, va in zip(data, datasets, splits, strict=True):
