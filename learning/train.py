@@ -354,11 +354,6 @@ def _fit_forward(priors: Priors, train, val, cfg: TrainConfig, log) -> list:
     )
 
 
-def _mean_error_mm(priors: Priors, S, A, S_next) -> float:
-    """Mean distance (mm) between f_D's predicted keypoints and `S_next`."""
-    return round(1000 * (priors.forward(S, A) - S_next).norm(dim=-1).mean().item(), 2)
-
-
 def train_forward(
     *,
     data: list[Path],
@@ -417,21 +412,16 @@ def train_forward(
     priors.f_D.eval()
     held_out = []
     for p, ds, va in zip(data, datasets, splits, strict=True):
-        S = torch.as_tensor(ds.arrays["keypoints"][va])
-        Sn = torch.as_tensor(ds.arrays["keypoints_next"][va])
-        A = torch.as_tensor(ds.arrays["action"][va])
-
+        new_m, old_m = evaluate(priors, ds, va), evaluate(old, ds, va)
         held_out.append(
             {
                 "dataset": str(p),
                 "fingerprint": ds.fingerprint,
                 "scenario_name": str(ds.attrs.get("scenario_name")),
-                "heldout_transitions": int(len(va)),
-                "f_D_error_mm": _mean_error_mm(priors, S, A, Sn),
-                "base_f_D_error_mm": _mean_error_mm(old, S, A, Sn),
-                "no_motion_baseline_mm": round(
-                    1000 * (S - Sn).norm(dim=-1).mean().item(), 2
-                ),
+                "heldout_transitions": new_m["heldout_transitions"],
+                "f_D_error_mm": new_m["f_D_error_mm"],
+                "base_f_D_error_mm": old_m["f_D_error_mm"],
+                "no_motion_baseline_mm": new_m["no_motion_baseline_mm"],
             }
         )
     metrics = dict(old.metadata.get("metrics", {}))

@@ -38,8 +38,8 @@ from fabric_imitation.learning.safety import valid_actions
 from fabric_imitation.learning.state import (
     NUM_KEYPOINTS,
     SIDES,
+    PlanarPose,
     world_to_object,
-    yaw_matrix,
 )
 from fabric_imitation.scenarios.loader import DumpScenario, LoadScenario
 from fabric_imitation.scenarios.poses import GraspCorners, ObjectPlanarPose
@@ -141,8 +141,8 @@ class EpisodeCollector:
         S_frame, A_frame = S, A
         if self.object_pose is not None:
             S_frame = world_to_object(S, self.object_pose)
-            R = yaw_matrix(np.asarray(self.object_pose[2]))
-            A_frame = (A.reshape(-1, 2, 3) @ R).reshape(A.shape)
+            pose = PlanarPose(*self.object_pose)
+            A_frame = pose.vector_to_object(A.reshape(-1, 2, 3)).reshape(A.shape)
         ok = valid_actions(
             torch.as_tensor(S_frame, dtype=torch.float64)[None],
             torch.as_tensor(A_frame),
