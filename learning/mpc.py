@@ -12,8 +12,7 @@ Each control step, from the current state S_t:
    the iteration cap (a count, never the clock: the same seed gives the same
    action on an idle and on a busy machine);
 4. return the first action of the best feasible sequence (the paper's
-   choice), or, with `execute="elite_mean"`, that of the mean of the last
-   iteration's elite sequences where that mean is feasible.
+   choice).
 """
 
 import dataclasses as dc
@@ -44,8 +43,6 @@ class Dynamics(Protocol):
 
 # The action priors `MpcConfig.prior` names.
 ACTION_PRIORS = ("grasp", "inverse")
-# The actions `MpcConfig.execute` names.
-EXECUTED_ACTIONS = ("best", "elite_mean")
 
 
 @dc.dataclass
@@ -120,15 +117,6 @@ class MpcConfig:
     # (docs/development.md).
     edge_cost: float = 1.0
     edge_band_deg: float = 15.0
-    # The action executed: "best", the first action of the best feasible
-    # sequence sampled (the paper's "solution with the highest reward"), or
-    # "elite_mean", the first action of the mean of the last iteration's
-    # elite sequences, checked as one more rollout (the best sample where
-    # that mean breaks a rule). Where the reward is flat along a direction
-    # (along a rail's bar, say), the best of N samples moves the grippers by
-    # a random amount along it, up to the action bound, in a new direction
-    # each step; the elite mean averages that noise out.
-    execute: str = "best"
 
     def __post_init__(self):
         if self.num_samples < 1 or self.horizon < 1:
@@ -147,10 +135,6 @@ class MpcConfig:
             raise ValueError(f"mpc.sigma0 must be positive, got {self.sigma0}")
         if self.prior not in ACTION_PRIORS:
             raise ValueError(f"mpc.prior must be inverse or grasp, got {self.prior!r}")
-        if self.execute not in EXECUTED_ACTIONS:
-            raise ValueError(
-                f"mpc.execute must be best or elite_mean, got {self.execute!r}"
-            )
         if self.edge_cost < 0:
             raise ValueError(f"mpc.edge_cost must be >= 0, got {self.edge_cost}")
         if not 0 < self.edge_band_deg < 180:
@@ -418,7 +402,6 @@ class Mpc:
                 for x in (torch.as_tensor(noise[0]), torch.as_tensor(noise[1]))
             )
         best_r, best_a = -float("inf"), None
-        elite_X = None  # the last iteration's elite sequences
         iterations, converged = 0, False
         iteration_seconds = []
         while iterations < cfg.max_iterations:
@@ -440,8 +423,7 @@ class Mpc:
                 if r[i] > best_r:
                     best_r, best_a = float(r[i]), X[i, 0].clone()
                 k = min(cfg.elites, int(feasible.sum()))
-                top = r.topk(k).indices
-                elite, elite_X = eps[top], X[top]
+                elite = eps[r.topk(k).indices]
                 mu = (1 - cfg.beta) * mu + cfg.beta * elite.mean(0)
                 var = (1 - cfg.beta) * var + cfg.beta * elite.var(0, unbiased=False)
                 converged = bool(var.sqrt().max() < cfg.tau_conv)
@@ -455,11 +437,6 @@ class Mpc:
                 break
         feasible = best_a is not None
         action = best_a if feasible else torch.zeros(6)
-        if cfg.execute == "elite_mean" and elite_X is not None:
-            mean = elite_X.mean(0, keepdim=True)
-            _, mean_cost = self.rollout(S, mean, window)
-            if not cfg.use_cost or mean_cost[0] == 0:
-                action = mean[0, 0].clone()
         seconds = time.perf_counter() - t0
         return MpcResult(
             action,

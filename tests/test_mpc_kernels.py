@@ -253,59 +253,6 @@ def test_a_carried_distribution_with_nothing_feasible_starts_over():
     assert float(result.action.abs().max()) < mpc.safety.max_step
 
 
-def _recorded_rollouts(mpc, *, mean_cost=None):
-    """Wraps mpc.rollout to keep every call's (X, reward, cost); with
-    `mean_cost`, a call on one sequence (the elite mean's check) reports
-    that cost."""
-    calls, rollout = [], mpc.rollout
-
-    def recorded(S, X, window):
-        reward, cost = rollout(S, X, window)
-        if mean_cost is not None and len(X) == 1:
-            cost = torch.full_like(cost, mean_cost)
-        calls.append((X, reward, cost))
-        return reward, cost
-
-    mpc.rollout = recorded
-    return calls
-
-
-def test_the_elite_mean_executes_the_mean_of_the_last_elites_first_actions():
-    mpc = make_mpc()
-    mpc.config = dc.replace(mpc.config, execute="elite_mean", max_iterations=3)
-    S = torch.as_tensor(cloth(0.05, z=0.02))
-    calls = _recorded_rollouts(mpc)
-    result = mpc.solve(S, seed=3)
-    assert result.feasible
-    *sampling, (X_mean, _, mean_cost) = calls
-    assert len(sampling) == 3 and len(X_mean) == 1 and mean_cost[0] == 0
-    X, reward, cost = sampling[-1]
-    r = torch.where(cost == 0, reward, torch.full_like(reward, -float("inf")))
-    elite = X[r.topk(mpc.config.elites).indices]
-    assert torch.allclose(X_mean[0], elite.mean(0))
-    assert torch.equal(result.action, X_mean[0, 0])
-    # The paper's choice at the same seed: the best sample, another action.
-    mpc.config = dc.replace(mpc.config, execute="best")
-    best = mpc.solve(S, seed=3)
-    assert not torch.allclose(best.action, result.action, atol=1e-4)
-
-
-def test_an_elite_mean_that_breaks_a_rule_gives_way_to_the_best_sample():
-    mpc = make_mpc()
-    mpc.config = dc.replace(mpc.config, execute="best", max_iterations=3)
-    S = torch.as_tensor(cloth(0.05, z=0.02))
-    best = mpc.solve(S, seed=3)
-    mpc.config = dc.replace(mpc.config, execute="elite_mean")
-    _recorded_rollouts(mpc, mean_cost=1.0)
-    fallback = mpc.solve(S, seed=3)
-    assert fallback.feasible and torch.equal(fallback.action, best.action)
-
-
-def test_an_unknown_executed_action_is_refused():
-    with pytest.raises(ValueError, match="mpc.execute must be best or elite_mean"):
-        MpcConfig(execute="median")
-
-
 def test_folded_priors_match_the_normalised_networks():
     import fabric_imitation.learning as learning
     from fabric_imitation.learning.geometry import (
