@@ -114,7 +114,8 @@ class MpcConfig:
     # 15 degrees) against off, development seeds 25-26, the five named
     # tasks and the 21 cm and 28 cm rails (140 pairs): 114 -> 125, +7.9 pp,
     # Newcombe 95 % [+1.1, +14.9], trials the referee ended 19 -> 11
-    # (docs/development.md).
+    # (docs/development.md). A band of 30 degrees against 15, development
+    # seeds 51-52 (140 pairs): -1.4 pp [-7.0, +4.0].
     edge_cost: float = 1.0
     edge_band_deg: float = 15.0
 
