@@ -1,6 +1,7 @@
 """`fabric-imitate train`: f_R, f_D, f_I from a prior dataset, with held-out
 metrics, training curves (PNG) and a checkpoint (paper Sec. IV-B)."""
 
+import copy
 import dataclasses as dc
 import json
 import math
@@ -378,8 +379,8 @@ def train_forward(
         raise InputError(f"epochs must be positive, got {cfg.epochs}")
     if not data:
         raise InputError("train --forward-only needs at least one --data")
-    priors = load_priors(base)
     old = load_priors(base)
+    priors = copy.deepcopy(old)  # f_D learns afresh here; `old` keeps base's
     datasets = [LoadDataset(p, images=False) for p in data]
     for p, ds in zip(data, datasets, strict=True):
         if ds.num_keypoints != priors.num_keypoints:
